@@ -1,0 +1,3 @@
+from parjam.cli import entry
+
+entry()

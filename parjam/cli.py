@@ -1,0 +1,105 @@
+"""The ``parjam`` command line: ``parjam <command> [options] [-petsc_option value ...]``.
+
+Each command lives in its own module under :mod:`parjam.commands` with ``add_parser(sub)``
+and ``run(args)``; they are discovered automatically.  Arguments that look like PETSc options
+(``-log_view``, ``-eps_nev 10``, ``-st_pc_type cholesky``; a single dash and a name of two or
+more characters) go to PETSc's options database before any PETSc object is created.
+"""
+
+import argparse
+import importlib
+import pkgutil
+import re
+import sys
+import traceback
+
+from parjam import __version__, env
+from parjam.errors import ParjamError
+
+_PETSC_OPT = re.compile(r"^-[A-Za-z_][A-Za-z0-9_:]+$")
+_NUMBER = re.compile(r"^-?[0-9.]")
+
+
+def split_petsc_args(argv):
+    """Separate PETSc options (and their values) from parjam's own arguments."""
+    ours, petsc = [], []
+    k = 0
+    while k < len(argv):
+        tok = argv[k]
+        if _PETSC_OPT.match(tok):
+            petsc.append(tok)
+            nxt = argv[k + 1] if k + 1 < len(argv) else None
+            if nxt is not None and (not nxt.startswith("-") or _NUMBER.match(nxt)):
+                petsc.append(nxt)
+                k += 1
+        else:
+            ours.append(tok)
+        k += 1
+    return ours, petsc
+
+
+def build_parser():
+    import parjam.commands as pkg
+
+    parser = argparse.ArgumentParser(
+        prog="parjam",
+        description="Parallel vibrational analysis of jammed soft-sphere packings "
+        "(Wyart, Silbert, Nagel & Witten, PRE 72, 051306). Any PETSc/SLEPc option "
+        "(-log_view, -eps_*, -st_*, -ksp_*) may follow.",
+    )
+    parser.add_argument("--version", action="version", version=f"parjam {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for mod in sorted(m.name for m in pkgutil.iter_modules(pkg.__path__)):
+        importlib.import_module(f"parjam.commands.{mod}").add_parser(sub)
+    return parser
+
+
+def rank_and_size():
+    from mpi4py import MPI
+
+    return MPI.COMM_WORLD.Get_rank(), MPI.COMM_WORLD.Get_size()
+
+
+def main(argv=None):
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ours, petsc_args = split_petsc_args(argv)
+    env.init(petsc_args)
+    rank, size = rank_and_size()
+    parser = build_parser()
+    try:
+        args = parser.parse_args(ours)
+    except SystemExit as exc:  # argparse already printed its one-line usage error
+        return int(exc.code or 0)
+    try:
+        code = args.run(args)
+        return int(code or 0)
+    except ParjamError as exc:
+        if rank == 0 or not exc.collective:
+            prefix = f"[rank {rank}] " if size > 1 and not exc.collective else ""
+            print(f"parjam: error: {prefix}{exc}", file=sys.stderr, flush=True)
+        if size > 1 and not exc.collective:
+            _abort(exc.exit_code)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("parjam: interrupted", file=sys.stderr, flush=True)
+        if size > 1:
+            _abort(130)
+        return 130
+    except Exception as exc:  # a bug or an unexpected failure: show it, end every rank
+        traceback.print_exc()
+        print(f"parjam: error: [rank {rank}] {type(exc).__name__}: {exc}", file=sys.stderr,
+              flush=True)
+        if size > 1:
+            _abort(1)
+        return 1
+
+
+def _abort(code):
+    from mpi4py import MPI
+
+    MPI.COMM_WORLD.Abort(code)
+
+
+def entry():
+    sys.exit(main())

@@ -1,0 +1,120 @@
+"""``parjam pack``: an ensemble of jammed packings (phi_c bisection, dphi ladder, pressures)."""
+
+import os
+
+import numpy as np
+
+from parjam.errors import ParjamError
+from parjam.packing import DISPERSITIES
+
+DEFAULT_PHI_START = {2: 0.86, 3: 0.66}
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "pack", help="generate jammed packings",
+        description="Random (infinite-temperature) start, minimisation to force balance, phi_c by "
+        "the O'Hern bisection, then phi_c + dphi for each dphi (or target pressures). One HDF5 "
+        "file per member and state in --out. Members are spread over MPI ranks; with fewer "
+        "members than ranks, ranks share a member (distributed minimisation).")
+    p.add_argument("--dim", type=int, default=3, help="dimension d, 2 or 3 (default 3)")
+    p.add_argument("--n", type=int, default=256, help="number of particles (>= 16)")
+    p.add_argument("--dispersity", default="mono", help="mono | bi (50:50) | poly (uniform)")
+    p.add_argument("--ratio", type=float, default=1.4,
+                   help="large/small diameter ratio for bi, width (max/min) for poly (1.4)")
+    p.add_argument("--alpha", type=float, default=2.0, help="potential exponent (2 harmonic, "
+                   "2.5 Hertz); must be > 1")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--dphi", type=float, nargs="+", help="ladder of phi - phi_c (default "
+                   "1e-6 1e-4 1e-2)")
+    g.add_argument("--pressure", type=float, nargs="+", help="target pressures instead")
+    g.add_argument("--phi", type=float, help="quench at this fixed phi only (no phi_c search)")
+    p.add_argument("--ladder", choices=("compress", "decompress"), default="compress",
+                   help="compress up from phi_c, or decompress from the largest dphi downwards")
+    p.add_argument("--phi-start", type=float, help="phi of the random start (0.86 in 2D, "
+                   "0.66 in 3D)")
+    p.add_argument("--seed", type=int, default=0, help="ensemble seed (member m uses [seed, m])")
+    p.add_argument("--members", type=int, default=1, help="ensemble size")
+    p.add_argument("--ftol", type=float, default=1e-13, help="max |F| tolerance (1e-13)")
+    p.add_argument("--energy-window", type=float, nargs=2, default=(1e-16, 2e-16),
+                   metavar=("LOW", "HIGH"), help="E/N window defining phi_c (1e-16 2e-16)")
+    p.add_argument("--no-phic-file", action="store_true", help="do not write the phi_c state")
+    p.add_argument("--out", default="packings", help="output directory (default ./packings)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(run=run)
+
+
+def validate(args):
+    if args.dim not in (2, 3):
+        raise ParjamError(f"--dim must be 2 or 3, got {args.dim}")
+    if args.n < 16:
+        raise ParjamError(f"--n must be at least 16, got {args.n}")
+    if args.n > 50_000_000:
+        raise ParjamError(f"--n {args.n} is absurdly large")
+    if args.dispersity not in DISPERSITIES:
+        raise ParjamError(f"unknown dispersity {args.dispersity!r}; choose from "
+                          f"{', '.join(DISPERSITIES)}")
+    if not np.isfinite(args.alpha) or args.alpha <= 1.0:
+        raise ParjamError(f"--alpha must be > 1, got {args.alpha}")
+    if not np.isfinite(args.ratio) or args.ratio < 1.0 or args.ratio > 10.0:
+        raise ParjamError(f"--ratio must lie in [1, 10], got {args.ratio}")
+    if args.members < 1:
+        raise ParjamError(f"--members must be >= 1, got {args.members}")
+    if not (0 < args.ftol < 1e-3):
+        raise ParjamError(f"--ftol must lie in (0, 1e-3), got {args.ftol}")
+    lo, hi = args.energy_window
+    if not (0 < lo < hi):
+        raise ParjamError(f"--energy-window needs 0 < LOW < HIGH, got {lo} {hi}")
+    for phi in [args.phi, args.phi_start]:
+        if phi is not None and not (0.05 <= phi < 1.0 + 0.5 * (args.dim == 2)):
+            raise ParjamError(f"volume fraction {phi} is out of range (0.05 .. 1)")
+    for dphi in args.dphi or []:
+        if not (0.0 < dphi <= 1.0):
+            raise ParjamError(f"--dphi values must lie in (0, 1], got {dphi}")
+    for p in args.pressure or []:
+        if not (0.0 < p < 10.0) or not np.isfinite(p):
+            raise ParjamError(f"--pressure values must lie in (0, 10), got {p}")
+    if args.phi is None and args.pressure is None and args.dphi is None:
+        args.dphi = [1e-6, 1e-4, 1e-2]
+    if args.phi_start is None:
+        args.phi_start = DEFAULT_PHI_START[args.dim]
+
+
+def member_groups(world, members):
+    """Split the ranks into min(members, size) groups; member m goes to group m % ngroups."""
+    from parjam import env
+
+    PETSc = env.petsc()
+    mpi = world.tompi4py()
+    ngroups = min(members, mpi.Get_size())
+    color = mpi.Get_rank() * ngroups // mpi.Get_size()
+    sub = mpi.Split(color, mpi.Get_rank())
+    mine = [m for m in range(members) if m % ngroups == color]
+    return PETSc.Comm(sub), mine
+
+
+def run(args):
+    validate(args)
+    from parjam import env
+    from parjam.ensemble import pack_member, print_table
+    from parjam.progress import Progress
+
+    PETSc = env.petsc()
+    world = PETSc.COMM_WORLD
+    comm, mine = member_groups(world, args.members)
+    progress = Progress(world, args.quiet)
+    if not os.path.isdir(args.out):
+        try:
+            os.makedirs(args.out, exist_ok=True)
+        except OSError as exc:
+            raise ParjamError(f"cannot create output directory {args.out}: {exc}") from None
+    rows = []
+    stage = PETSc.Log.Stage("parjam pack")
+    stage.push()
+    for m in mine:
+        rows += pack_member(args, m, comm, progress.sub(f"member {m + 1}/{args.members}: "))
+    stage.pop()
+    all_rows = world.tompi4py().gather(rows, root=0)
+    if world.getRank() == 0:
+        print_table([r for part in all_rows for r in part])
+    return 0

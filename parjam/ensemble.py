@@ -1,0 +1,100 @@
+"""Making the states of one ensemble member and writing them: the work behind ``parjam pack``."""
+
+import os
+import time
+
+import numpy as np
+
+from parjam import io
+from parjam.network import analyze
+from parjam.packing import JamSettings, Jammer, random_packing
+
+
+def member_rng(seed, member):
+    """Independent, reproducible stream for member m, whatever the number of ranks."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(member)]))
+
+
+def settings_from(args):
+    lo, hi = args.energy_window
+    return JamSettings(ftol=args.ftol, e_low=lo, e_high=hi)
+
+
+def member_states(args, member, comm, progress):
+    """Every requested state of one member, in the order they are computed."""
+    rng = member_rng(args.seed, member)
+    start_phi = args.phi if args.phi is not None else args.phi_start
+    pack = random_packing(args.dim, args.n, start_phi, args.alpha, args.dispersity, args.ratio,
+                          rng)
+    jammer = Jammer(comm, pack, settings_from(args), progress)
+    try:
+        if args.phi is not None:
+            states = [jammer.at_phi(args.phi, f"phi{args.phi:.4f}")]
+            protocol = "quench"
+        else:
+            phic = jammer.find_phi_c()
+            phi_c = phic.info["phi_c"]
+            progress(f"phi_c = {phi_c:.10f} after {phic.info['iterations']} minimisations")
+            states = [] if args.no_phic_file else [phic]
+            if args.pressure:
+                protocol = "ohern-bisection+pressure"
+                for p in sorted(args.pressure):
+                    states.append(jammer.at_pressure(p, phi_c))
+            else:
+                protocol = "ohern-bisection+ladder"
+                states += jammer.ladder(phi_c, args.dphi, args.ladder)
+        totals = {"fire_steps": jammer.total_fire, "newton_steps": jammer.total_newton,
+                  "force_evaluations": jammer.ff.n_force_calls}
+    finally:
+        jammer.destroy()
+    return states, protocol, totals
+
+
+def file_name(out, member, state):
+    return os.path.join(out, f"member{member:04d}_{state.label}.h5")
+
+
+def pack_member(args, member, comm, progress):
+    """Compute, write (group rank 0) and summarise the states of one ensemble member."""
+    t0 = time.time()
+    states, protocol, totals = member_states(args, member, comm, progress)
+    rows = []
+    for st in states:
+        net = analyze(st.pack)
+        params = {
+            "protocol": protocol, "ladder": args.ladder if "ladder" in protocol else "none",
+            "seed": args.seed, "member": member, "dimension": args.dim, "n": args.n,
+            "dispersity": args.dispersity, "ratio": args.ratio, "ftol": args.ftol,
+            "energy_window": list(args.energy_window), "state": st.label,
+            "minimiser_status": st.result.status, "group_ranks": comm.getSize(),
+            "seconds": time.time() - t0,
+            **{k: v for k, v in st.info.items()}, **totals,
+        }
+        path = file_name(args.out, member, st)
+        if comm.getRank() == 0:
+            prov = io.provenance(comm.tompi4py().Get_size(), {"world_ranks": _world_size()})
+            st.pack.meta.setdefault("species", st.pack.meta.get("species"))
+            io.write_packing(path, st.pack, net, params, prov)
+        row = {"member": member, "state": st.label, "file": path, **net.summary(),
+               "phi_c": st.info.get("phi_c", np.nan)}
+        rows.append(row)
+    progress(f"done in {time.time() - t0:.1f} s ({totals['fire_steps']} FIRE steps, "
+             f"{totals['newton_steps']} Newton steps)")
+    return rows
+
+
+def _world_size():
+    from mpi4py import MPI
+
+    return MPI.COMM_WORLD.Get_size()
+
+
+def print_table(rows):
+    rows = sorted(rows, key=lambda r: (r["member"], r["phi"]))
+    head = (f"{'member':>6} {'state':>12} {'phi_c':>14} {'phi':>14} {'N_act':>6} {'Nc-iso':>6} "
+            f"{'z':>8} {'dz':>10} {'p':>11} {'max|F|':>9} {'|F|rel':>9}")
+    print(head)
+    for r in rows:
+        print(f"{r['member']:>6} {r['state']:>12} {r['phi_c']:>14.10f} {r['phi']:>14.10f} "
+              f"{r['N_active']:>6} {r['excess']:>6} {r['z']:>8.4f} {r['dz']:>10.3e} "
+              f"{r['pressure']:>11.4e} {r['max_force']:>9.2e} {r['max_force_rel']:>9.2e}")

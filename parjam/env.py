@@ -1,0 +1,117 @@
+"""The one place where PETSc and SLEPc are located and initialised.
+
+HPC users bring their own PETSc/SLEPc (>= 3.18) through PETSC_DIR/PETSC_ARCH and SLEPC_DIR;
+when those are unset and Debian's packages are installed, their paths are used.  Every
+command-line argument that starts with ``-`` after parjam's own options reaches PETSc's options
+database, so ``-log_view``, ``-eps_*``, ``-st_*`` and ``-ksp_*`` configure the solvers.
+"""
+
+import os
+import sys
+
+DEBIAN_PETSC_DIR = "/usr/lib/petscdir/petsc3.18/x86_64-linux-gnu-real"
+DEBIAN_SLEPC_DIR = "/usr/lib/slepcdir/slepc3.18/x86_64-linux-gnu-real"
+
+_initialised = False
+
+
+def _default_dirs():
+    """Fill PETSC_DIR/SLEPC_DIR with Debian's paths only when the user set nothing, and put the
+    petsc4py/slepc4py that belong to those installations on sys.path (Debian installs them under
+    $PETSC_DIR/lib/python3/dist-packages, source builds under $PETSC_DIR/$PETSC_ARCH/lib)."""
+    if "PETSC_DIR" not in os.environ and os.path.isdir(DEBIAN_PETSC_DIR):
+        os.environ["PETSC_DIR"] = DEBIAN_PETSC_DIR
+    if "SLEPC_DIR" not in os.environ and os.path.isdir(DEBIAN_SLEPC_DIR):
+        os.environ["SLEPC_DIR"] = DEBIAN_SLEPC_DIR
+    arch = os.environ.get("PETSC_ARCH", "")
+    for var in ("PETSC_DIR", "SLEPC_DIR"):
+        root = os.environ.get(var)
+        if not root:
+            continue
+        for sub in ("lib/python3/dist-packages", os.path.join(arch, "lib")):
+            path = os.path.join(root, sub)
+            if os.path.isdir(path) and path not in sys.path:
+                sys.path.append(path)
+
+
+def init(petsc_args=None):
+    """Initialise petsc4py and slepc4py once, passing ``petsc_args`` to the options database."""
+    global _initialised
+    if not _initialised:
+        _default_dirs()
+        import petsc4py
+        import slepc4py
+
+        args = [sys.argv[0]] + list(petsc_args or [])
+        petsc4py.init(args)
+        slepc4py.init(args)
+        _initialised = True
+    from petsc4py import PETSc
+
+    return PETSc
+
+
+def petsc():
+    """The PETSc module, initialised (without extra options if nobody initialised it yet)."""
+    return init()
+
+
+def slepc():
+    init()
+    from slepc4py import SLEPc
+
+    return SLEPc
+
+
+def mpi_comm():
+    """mpi4py's COMM_WORLD (PETSc initialised first so both agree on MPI)."""
+    init()
+    from mpi4py import MPI
+
+    return MPI.COMM_WORLD
+
+
+def has_mumps():
+    """Whether the PETSc build offers MUMPS as a factorisation package."""
+    PETSc = init()
+    A = PETSc.Mat().createAIJ([2, 2], nnz=1, comm=PETSc.COMM_SELF)
+    A.setValue(0, 0, 1.0)
+    A.setValue(1, 1, 1.0)
+    A.assemble()
+    pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
+    pc.setOperators(A)
+    pc.setType("cholesky")
+    try:
+        pc.setFactorSolverType("mumps")
+        pc.setUp()
+        ok = True
+    except PETSc.Error:
+        ok = False
+    finally:
+        pc.destroy()
+        A.destroy()
+    return ok
+
+
+def versions():
+    """Versions of everything a result depends on (also written into every HDF5 file)."""
+    import platform
+
+    import numpy
+    import mpi4py
+    from mpi4py import MPI
+
+    from parjam import __version__
+
+    PETSc = init()
+    SLEPc = slepc()
+    return {
+        "parjam": __version__,
+        "python": platform.python_version(),
+        "numpy": numpy.__version__,
+        "petsc": "%d.%d.%d" % PETSc.Sys.getVersion(),
+        "slepc": "%d.%d.%d" % SLEPc.Sys.getVersion(),
+        "mpi4py": mpi4py.__version__,
+        "mpi": MPI.Get_library_version().splitlines()[0].strip(),
+        "petsc_dir": os.environ.get("PETSC_DIR", ""),
+    }

@@ -1,0 +1,128 @@
+"""Energy and forces of one packing whose state lives in distributed PETSc Vecs.
+
+Each rank owns a contiguous range of particles (PETSc's split, block size d).  Positions are
+gathered to every rank (VecScatter to all) for the neighbour search; each rank keeps the
+neighbour pairs that touch its particles and computes the forces on them only.  Forces on a
+particle are summed over its pairs in global (i, j) order, so they are bitwise independent of
+the number of ranks.  Scalars (energy, max |F|) are reduced over the communicator.
+"""
+
+import numpy as np
+
+from parjam import env, hessian, potential
+from parjam.system import min_image, neighbour_pairs, pair_geometry, wrap
+
+
+class ForceField:
+    """Forces, energy and Hessian of a packing (diameters, box L, alpha) on communicator comm."""
+
+    def __init__(self, comm, diam, L, d, alpha, eps=1.0, skin=None):
+        PETSc = env.petsc()
+        self.comm = comm
+        self.mpi = comm.tompi4py()
+        self.diam = np.asarray(diam, dtype=np.float64)
+        self.n = len(self.diam)
+        self.d = d
+        self.alpha = alpha
+        self.eps = eps
+        self.skin = 0.2 * self.diam.min() if skin is None else skin
+        self.lo, self.hi = hessian.row_range(self.n, comm)
+        self.x = PETSc.Vec().createMPI(((self.hi - self.lo) * d, self.n * d), bsize=d, comm=comm)
+        self.scatter, self.xall = PETSc.Scatter.toAll(self.x)
+        self.set_box(L)
+        self.n_force_calls = 0
+        self.n_rebuilds = 0
+
+    def set_box(self, L):
+        self.L = float(L)
+        cut = self.diam.max() + self.skin
+        if self.L <= 2.0 * cut:
+            self.skin = max(0.0, 0.49 * self.L - self.diam.max())
+        self.pairs = None
+
+    def vec(self):
+        """A new Vec with the layout of the positions."""
+        return self.x.duplicate()
+
+    # --- positions -----------------------------------------------------------------------
+    def set_positions(self, pos):
+        """Scatter full positions (same array on every rank) into the distributed Vec."""
+        self.x.array[:] = pos[self.lo:self.hi].ravel()
+
+    def wrap(self):
+        """Fold the owned positions back into [0, L)."""
+        arr = self.x.array
+        arr[:] = wrap(arr, self.L)
+
+    def gather(self, vec=None):
+        """Full (N, d) positions on every rank."""
+        PETSc = env.petsc()
+        self.scatter.scatter(self.x if vec is None else vec, self.xall,
+                             PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+        return self.xall.array_r.reshape(self.n, self.d)
+
+    def local(self, vec):
+        return vec.array.reshape(-1, self.d)
+
+    # --- neighbour list (Verlet list with skin) ------------------------------------------------
+    def _update_pairs(self, pos):
+        if self.pairs is not None:
+            disp = min_image(pos - self.ref_pos, self.L)
+            if np.max(np.einsum("ij,ij->i", disp, disp)) < (0.5 * self.skin) ** 2:
+                return
+        pairs = neighbour_pairs(pos, self.L, self.diam.max() + self.skin)
+        i, j = pairs[:, 0], pairs[:, 1]
+        mine = ((i >= self.lo) & (i < self.hi)) | ((j >= self.lo) & (j < self.hi))
+        self.pairs = pairs[mine]
+        self.ref_pos = pos.copy()
+        self.n_rebuilds += 1
+
+    def contacts(self, pos):
+        """Pairs touching owned particles that overlap: (i, j, r_ij, r, sigma)."""
+        self._update_pairs(pos)
+        rij, r, sigma = pair_geometry(pos, self.L, self.diam, self.pairs)
+        c = r < sigma
+        return self.pairs[c, 0], self.pairs[c, 1], rij[c], r[c], sigma[c]
+
+    # --- energy and forces ---------------------------------------------------------------
+    def evaluate(self, f):
+        """Write the forces on owned particles into Vec f; return the total energy."""
+        self.n_force_calls += 1
+        pos = self.gather()
+        i, j, rij, r, sigma = self.contacts(pos)
+        dv = potential.dV(r, sigma, self.alpha, self.eps)
+        fj = -(dv / r)[:, None] * rij  # force on j from i; on i it is -fj
+        nloc = self.hi - self.lo
+        own_i = (i >= self.lo) & (i < self.hi)
+        own_j = (j >= self.lo) & (j < self.hi)
+        idx = np.concatenate([i[own_i], j[own_j]]) - self.lo
+        fl = self.local(f)
+        for a in range(self.d):
+            w = np.concatenate([-fj[own_i, a], fj[own_j, a]])
+            fl[:, a] = np.bincount(idx, weights=w, minlength=nloc)
+        e_local = potential.energy(r[own_i], sigma[own_i], self.alpha, self.eps).sum()
+        return self.mpi.allreduce(e_local)
+
+    def max_norm(self, f):
+        """max_i |F_i| over all particles (Euclidean norm per particle)."""
+        fl = self.local(f)
+        m = np.sqrt(np.einsum("ij,ij->i", fl, fl)).max() if len(fl) else 0.0
+        return self.mpi.allreduce(m, op=_max())
+
+    def hessian(self, shift=0.0, kind="full"):
+        """The distributed Hessian at the current positions (all particles, rattlers included)."""
+        pos = self.gather()
+        i, j, rij, r, sigma = self.contacts(pos)
+        blocks = hessian.contact_blocks(rij, r, sigma, self.alpha, self.eps, kind)
+        return hessian.assemble(self.comm, self.n, self.d, i, j, blocks, shift)
+
+    def destroy(self):
+        self.scatter.destroy()
+        self.xall.destroy()
+        self.x.destroy()
+
+
+def _max():
+    from mpi4py import MPI
+
+    return MPI.MAX

@@ -1,0 +1,181 @@
+"""HDF5 files in the H5MD 1.1 layout (docs/file-format.md) through h5py.
+
+Writes are atomic: a file is written under a temporary name in the same directory and renamed
+into place only when complete, so a killed run never leaves a truncated file that looks valid.
+Only the caller that owns a file (rank 0 of the group that computed it) writes it.
+"""
+
+import contextlib
+import hashlib
+import json
+import os
+import sys
+
+import h5py
+import numpy as np
+
+from parjam import __version__
+from parjam.errors import ParjamError
+from parjam.system import Packing
+
+
+@contextlib.contextmanager
+def atomic_h5(path):
+    """Open ``path`` for writing through a temporary file renamed on success."""
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp{os.getpid()}")
+    try:
+        with h5py.File(tmp, "w") as f:
+            yield f
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def write_h5md_header(f, provenance=None):
+    """The /h5md group: version, author, creator (parjam + version) and a parjam module."""
+    h5md = f.create_group("h5md")
+    h5md.attrs["version"] = np.array([1, 1], dtype=np.int32)
+    author = h5md.create_group("author")
+    author.attrs["name"] = os.environ.get("USER", "parjam user")
+    creator = h5md.create_group("creator")
+    creator.attrs["name"] = "parjam"
+    creator.attrs["version"] = __version__
+    module = h5md.create_group("modules").create_group("parjam")
+    module.attrs["version"] = __version__
+    for key, val in (provenance or {}).items():
+        module.attrs[key] = _attr(val)
+
+
+def _attr(val):
+    if isinstance(val, (dict, list, tuple)) and not _is_numeric_seq(val):
+        return json.dumps(val)
+    if val is None:
+        return "none"
+    return val
+
+
+def _is_numeric_seq(val):
+    return isinstance(val, (list, tuple)) and all(isinstance(v, (int, float)) for v in val) and val
+
+
+def provenance(comm_size, extra=None):
+    """Versions, command line and PETSc options: stored with every result."""
+    from parjam import env
+
+    prov = {"versions": env.versions(), "command_line": " ".join(sys.argv),
+            "ranks": int(comm_size)}
+    try:
+        prov["petsc_options"] = env.petsc().Options().getAll()
+    except Exception:  # options database unavailable: record nothing rather than fail
+        prov["petsc_options"] = {}
+    prov.update(extra or {})
+    return prov
+
+
+def write_packing(path, pack, net, parameters, prov=None):
+    """One packing and its contact network (H5MD layout; see docs/file-format.md)."""
+    with atomic_h5(path) as f:
+        write_h5md_header(f, prov)
+        part = f.create_group("particles/all")
+        box = part.create_group("box")
+        box.attrs["dimension"] = np.int32(pack.d)
+        box.attrs["boundary"] = np.array([b"periodic"] * pack.d, dtype="S8")
+        box.create_dataset("edges", data=np.full(pack.d, pack.L))
+        pos = part.create_group("position")
+        pos.create_dataset("step", data=np.array([0], dtype=np.int64))
+        pos.create_dataset("time", data=np.array([0.0]))
+        pos.create_dataset("value", data=pack.pos[None, :, :])
+        part.create_dataset("diameter", data=pack.diam)
+        part.create_dataset("species", data=pack.meta.get("species", np.zeros(pack.n, np.int32)))
+        part.create_dataset("rattler", data=net.rattler.astype(np.int8))
+        _write_contacts(f, pack, net)
+        obs = f.create_group("observables")
+        for key, val in net.summary().items():
+            obs.create_dataset(key, data=val)
+        obs.create_dataset("stress_tensor", data=net.stress)
+        par = f.create_group("parameters")
+        par.attrs["alpha"] = pack.alpha
+        par.attrs["epsilon"] = pack.eps
+        par.attrs["phi"] = pack.phi
+        for key, val in parameters.items():
+            par.attrs[key] = _attr(val)
+
+
+def _write_contacts(f, pack, net):
+    from parjam.network import contact_forces
+    from parjam import potential
+
+    c = net.all_contacts
+    g = f.create_group("connectivity")
+    g.create_dataset("contacts", data=np.stack([c.i, c.j], axis=1).reshape(-1, 2))
+    g.create_dataset("overlap", data=potential.overlap(c.r, c.sigma))
+    fmag = np.linalg.norm(contact_forces(pack, c), axis=1) if len(c) else np.zeros(0)
+    g.create_dataset("force", data=fmag)
+    g.create_dataset("stiffness", data=potential.d2V(c.r, c.sigma, pack.alpha, pack.eps))
+    g["contacts"].attrs["particles_group"] = "/particles/all"
+
+
+def _dataset(f, name, path):
+    if name not in f:
+        raise ParjamError(f"{path}: missing dataset /{name}")
+    return f[name][()]
+
+
+def read_packing(path):
+    """A Packing from an H5MD file (parjam's own or the reference layout), validated."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ParjamError(f"{path}: no such file")
+    if not h5py.is_hdf5(path):
+        raise ParjamError(f"{path}: not an HDF5 file")
+    try:
+        with h5py.File(path, "r") as f:
+            pos = np.asarray(_dataset(f, "particles/all/position/value", path), dtype=float)
+            diam = np.asarray(_dataset(f, "particles/all/diameter", path), dtype=float)
+            edges = np.atleast_1d(np.asarray(_dataset(f, "particles/all/box/edges", path),
+                                             dtype=float))
+            params = dict(f["parameters"].attrs) if "parameters" in f else {}
+    except OSError as exc:
+        raise ParjamError(f"{path}: unreadable HDF5 file ({exc})") from None
+    return _validated(path, pos, diam, edges, params)
+
+
+def _validated(path, pos, diam, edges, params):
+    if pos.ndim == 3:
+        pos = pos[-1]
+    if pos.ndim != 2 or pos.shape[1] not in (2, 3):
+        raise ParjamError(f"{path}: positions must have shape (N, 2) or (N, 3), got {pos.shape}")
+    n, d = pos.shape
+    if diam.shape != (n,):
+        raise ParjamError(f"{path}: diameters must have shape ({n},), got {diam.shape}")
+    if edges.shape != (d,) or not np.allclose(edges, edges[0], rtol=1e-12):
+        raise ParjamError(f"{path}: box edges must be {d} equal values, got {edges}")
+    for name, arr in (("positions", pos), ("diameters", diam), ("box edges", edges)):
+        if not np.all(np.isfinite(arr)):
+            raise ParjamError(f"{path}: {name} contain NaN or inf")
+    if np.any(diam <= 0) or edges[0] <= 0:
+        raise ParjamError(f"{path}: diameters and box edges must be positive")
+    alpha = float(params.get("alpha", 2.0))
+    if not np.isfinite(alpha) or alpha <= 1:
+        raise ParjamError(f"{path}: alpha must be > 1, got {alpha}")
+    L = float(edges[0])
+    meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in params.items()}
+    meta["source"] = os.path.abspath(path)
+    from parjam.system import wrap
+
+    try:
+        return Packing(wrap(pos, L), diam, L, alpha, float(params.get("epsilon", 1.0)), meta)
+    except ValueError as exc:
+        raise ParjamError(f"{path}: {exc}") from None
+
+
+def sha256(path):
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()

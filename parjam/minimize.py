@@ -1,0 +1,211 @@
+"""Energy minimisation to force balance: FIRE to a loose tolerance, then Newton steps with the
+exact Hessian through PETSc (KSP, MUMPS factorisation) down to the round-off floor.
+
+FIRE: Bitzek et al., PRL 97, 170201 (2006), with the FIRE 2.0 half-step back-off of Guenole et
+al., Comput. Mater. Sci. 175, 109584 (2020).  Newton: Levenberg-Marquardt shift mu ~ max|F| so
+that near-zero modes are damped while the residual is large, the d global translations projected
+out of the right-hand side and of the step, and a backtracking line search on the energy.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from parjam import env
+
+
+@dataclass
+class FireParams:
+    dt: float = 0.05
+    dt_max: float = 0.5
+    dt_min: float = 1e-4
+    n_delay: int = 5
+    f_inc: float = 1.1
+    f_dec: float = 0.5
+    a0: float = 0.1
+    f_a: float = 0.99
+    max_steps: int = 200000
+
+
+@dataclass
+class MinResult:
+    status: str  # "converged", "unjammed" or "not converged"
+    energy: float
+    fmax: float
+    fire_steps: int = 0
+    newton_steps: int = 0
+
+    @property
+    def ok(self):
+        return self.status == "converged"
+
+
+def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None):
+    """FIRE on ff.x until max|F| < ftol, or the energy falls below e_stop (-> "unjammed")."""
+    p = params or FireParams()
+    f = ff.vec()
+    v = ff.vec()
+    v.set(0.0)
+    x_old = ff.vec()
+    energy = ff.evaluate(f)
+    fmax = ff.max_norm(f)
+    dt, a, n_pos = p.dt, p.a0, 0
+    status = "not converged"
+    step = 0
+    for step in range(1, p.max_steps + 1):
+        if energy < e_stop:
+            status = "unjammed"
+            break
+        if fmax < ftol:
+            status = "converged"
+            break
+        power = f.dot(v)
+        if power > 0.0:
+            n_pos += 1
+            if n_pos > p.n_delay:
+                dt = min(dt * p.f_inc, p.dt_max)
+                a *= p.f_a
+        else:
+            n_pos = 0
+            dt = max(dt * p.f_dec, p.dt_min)
+            a = p.a0
+            ff.x.axpy(-0.5 * dt, v)  # FIRE 2.0: step half back before stopping
+            v.set(0.0)
+        # semi-implicit Euler with FIRE mixing (unit masses)
+        v.axpy(dt, f)
+        vn, fn = v.norm(), f.norm()
+        if fn > 0.0:
+            v.scale(1.0 - a)
+            v.axpy(a * vn / fn, f)
+        ff.x.axpy(dt, v)
+        ff.wrap()
+        energy = ff.evaluate(f)
+        fmax = ff.max_norm(f)
+        if progress is not None and step % 2000 == 0:
+            progress(f"FIRE step {step}: E/N = {energy / ff.n:.3e}, max|F| = {fmax:.3e}")
+    for vec in (f, v, x_old):
+        vec.destroy()
+    return MinResult(status, energy, fmax, fire_steps=step)
+
+
+def _linear_solver(ff, H):
+    PETSc = env.petsc()
+    ksp = PETSc.KSP().create(comm=ff.comm)
+    ksp.setOptionsPrefix("newton_")
+    ksp.setOperators(H)
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType("cholesky")
+    if env.has_mumps():
+        pc.setFactorSolverType("mumps")
+    elif ff.comm.getSize() == 1:
+        pc.setType("lu")
+    ksp.setFromOptions()
+    return ksp
+
+
+def _remove_translations(ff, vec):
+    """Subtract the mean displacement/force per Cartesian direction (the d zero modes)."""
+    loc = ff.local(vec)
+    mean = ff.mpi.allreduce(loc.sum(axis=0)) / ff.n
+    loc -= mean
+
+
+def newton(ff, ftol, max_steps=60, progress=None):
+    """Damped Newton iterations from ff.x until max|F| <= ftol."""
+    f = ff.vec()
+    f_trial = ff.vec()
+    dx = ff.vec()
+    x0 = ff.vec()
+    energy = ff.evaluate(f)
+    fmax = ff.max_norm(f)
+    status = "not converged"
+    step = 0
+    mu_scale = 1.0
+    tight = 0.1 * ftol  # aim below the tolerance; stop at ftol only when progress stalls
+    for step in range(1, max_steps + 1):
+        if fmax <= tight:
+            status = "converged"
+            break
+        mu = mu_scale * min(1e-2, max(fmax, 1e-15))
+        H = ff.hessian(shift=mu)
+        ksp = _linear_solver(ff, H)
+        _remove_translations(ff, f)
+        ksp.solve(f, dx)
+        ksp.destroy()
+        H.destroy()
+        _remove_translations(ff, dx)
+        ff.x.copy(x0)
+        accepted = False
+        s = 1.0
+        for _ in range(12):
+            x0.copy(ff.x)
+            ff.x.axpy(s, dx)
+            ff.wrap()
+            e_new = ff.evaluate(f_trial)
+            fmax_new = ff.max_norm(f_trial)
+            flat = abs(e_new - energy) <= 1e-13 * abs(energy) + 1e-300
+            if e_new < energy or (flat and fmax_new < fmax):
+                accepted = True
+                break
+            s *= 0.5
+        if not accepted:
+            x0.copy(ff.x)
+            ff.wrap()
+            mu_scale *= 100.0
+            if mu_scale > 1e12 or fmax <= ftol:
+                break
+            continue
+        mu_scale = max(1.0, mu_scale / 10.0)
+        f_trial.copy(f)
+        energy, fmax = e_new, fmax_new
+        if progress is not None:
+            progress(f"Newton step {step}: E/N = {energy / ff.n:.3e}, max|F| = {fmax:.3e}")
+    if fmax <= ftol:
+        status = "converged"
+    ff.evaluate(f)
+    for vec in (f, f_trial, dx, x0):
+        vec.destroy()
+    return MinResult(status, energy, fmax, newton_steps=step)
+
+
+def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_params=None):
+    """FIRE until max|F| < fire_rel * (mean |F|-scale of the contacts), then Newton to ftol.
+
+    Returns "unjammed" as soon as the energy drops below ``e_stop`` (useful in the phi_c
+    bisection: the energy only decreases during minimisation).
+    """
+    f = ff.vec()
+    energy = ff.evaluate(f)
+    ff_scale = _force_scale(ff)
+    f.destroy()
+    res = fire(ff, max(ftol, fire_rel * ff_scale), e_stop, fire_params, progress)
+    if res.status == "unjammed" or res.fmax <= ftol:
+        return res
+    for attempt in range(3):
+        nres = newton(ff, ftol, progress=progress)
+        nres.fire_steps = res.fire_steps
+        if nres.ok or nres.energy < e_stop:
+            if nres.energy < e_stop:
+                nres.status = "unjammed"
+            return nres
+        # Newton stalled (e.g. a contact network still rearranging): more FIRE, tighter.
+        fire_rel *= 1e-2
+        more = fire(ff, max(ftol, fire_rel * _force_scale(ff)), e_stop, fire_params, progress)
+        res = MinResult(more.status, more.energy, more.fmax, res.fire_steps + more.fire_steps,
+                        nres.newton_steps)
+        if more.status == "unjammed" or more.fmax <= ftol:
+            return res
+    return nres
+
+
+def _force_scale(ff):
+    """Mean contact force magnitude |V'(r)| over all contacts (0 if there are none)."""
+    from parjam import potential
+
+    pos = ff.gather()
+    i, j, rij, r, sigma = ff.contacts(pos)
+    own = (i >= ff.lo) & (i < ff.hi)
+    tot = ff.mpi.allreduce(np.abs(potential.dV(r[own], sigma[own], ff.alpha, ff.eps)).sum())
+    cnt = ff.mpi.allreduce(int(own.sum()))
+    return tot / cnt if cnt else 0.0

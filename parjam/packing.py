@@ -1,0 +1,192 @@
+"""Jammed packings: random (infinite-temperature) starts, the O'Hern bisection to phi_c, the
+dphi ladder (compression up from phi_c, or decompression down to it) and target pressures.
+
+O'Hern, Silbert, Liu & Nagel, PRE 68, 011306 (2003): a configuration is compressed or
+decompressed and re-minimised until its energy per particle lies in a tiny window above zero;
+the volume fraction there is its phi_c.  The step in phi is chosen by bisection of the bracket
+[unjammed, overjammed], accelerated (and always kept inside the bracket) by the prediction of
+the virial relation for a jammed state, E ~ (phi - phi_c)^alpha, dE/dphi = p V / phi, which gives
+phi_c ~= phi - alpha E phi / (p V) while the contact network does not change.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from parjam import minimize
+from parjam.errors import ParjamError, UnjammedError
+from parjam.forces import ForceField
+from parjam.system import Packing, sphere_volume
+
+DISPERSITIES = ("mono", "bi", "poly")
+
+
+def diameters(n, dispersity="mono", ratio=1.4, rng=None):
+    """Diameters with the smallest equal to 1: mono; bi (50:50, large/small = ratio); poly
+    (uniform between 1 and ratio)."""
+    if dispersity == "mono":
+        return np.ones(n), np.zeros(n, dtype=np.int32)
+    if not np.isfinite(ratio) or ratio < 1.0:
+        raise ParjamError(f"diameter ratio must be >= 1, got {ratio}")
+    if dispersity == "bi":
+        species = (np.arange(n) >= n // 2).astype(np.int32)
+        return np.where(species == 1, ratio, 1.0), species
+    if dispersity == "poly":
+        return 1.0 + (ratio - 1.0) * rng.random(n), np.zeros(n, dtype=np.int32)
+    raise ParjamError(f"unknown dispersity {dispersity!r}; choose from {', '.join(DISPERSITIES)}")
+
+
+def random_packing(d, n, phi, alpha=2.0, dispersity="mono", ratio=1.4, rng=None):
+    """Uniform random positions at volume fraction phi: an infinite-temperature configuration."""
+    rng = rng if rng is not None else np.random.default_rng()
+    diam, species = diameters(n, dispersity, ratio, rng)
+    L = float((sphere_volume(diam, d).sum() / phi) ** (1.0 / d))
+    pos = rng.uniform(0.0, L, size=(n, d))
+    pos[pos >= L] = 0.0
+    return Packing(pos, diam, L, alpha, meta={"species": species})
+
+
+@dataclass
+class JamSettings:
+    ftol: float = 1e-13  # max |F| on every particle (eps/sigma units)
+    e_low: float = 1e-16  # energy-per-particle window of the phi_c state
+    e_high: float = 2e-16
+    first_step: float = 2e-3  # compression step while unjammed (doubles each time)
+    max_iter: int = 200
+    ptol: float = 1e-6  # relative tolerance of a target pressure
+
+
+@dataclass
+class State:
+    """One minimised state of a configuration."""
+
+    pack: Packing
+    result: minimize.MinResult
+    label: str
+    info: dict = field(default_factory=dict)
+
+
+class Jammer:
+    """Minimises one configuration at chosen volume fractions on communicator ``comm``."""
+
+    def __init__(self, comm, pack, settings=None, progress=None):
+        self.comm = comm
+        self.settings = settings or JamSettings()
+        self.progress = progress
+        self.ff = ForceField(comm, pack.diam, pack.L, pack.d, pack.alpha, pack.eps)
+        self.pack = pack.copy()
+        self.ff.set_positions(self.pack.pos)
+        self.total_fire = 0
+        self.total_newton = 0
+
+    def _log(self, msg):
+        if self.progress is not None:
+            self.progress(msg)
+
+    def relax(self, phi=None, e_stop=-np.inf):
+        """Rescale affinely to phi (if given) and minimise; returns the MinResult."""
+        if phi is not None:
+            self.pack = self.pack.rescaled(phi)
+            self.ff.set_box(self.pack.L)
+            self.ff.set_positions(self.pack.pos)
+        res = minimize.minimise(self.ff, self.settings.ftol, e_stop)
+        self.total_fire += res.fire_steps
+        self.total_newton += res.newton_steps
+        self.pack.pos = np.array(self.ff.gather())
+        return res
+
+    def pressure(self):
+        from parjam.network import analyze
+
+        return analyze(self.pack).pressure
+
+    def state(self, res, label, **info):
+        return State(self.pack.copy(), res, label, info)
+
+    def find_phi_c(self):
+        """O'Hern bisection: returns the State whose E/N lies in [e_low, e_high]."""
+        s = self.settings
+        n = self.pack.n
+        lo, hi = 0.0, np.inf
+        step = s.first_step
+        phi = self.pack.phi
+        for it in range(1, s.max_iter + 1):
+            res = self.relax(phi, e_stop=s.e_low * n)
+            e = res.energy / n
+            self._log(f"phi_c search {it}: phi = {phi:.12f}, E/N = {e:.3e}, "
+                      f"max|F| = {res.fmax:.2e} ({res.status})")
+            if res.status == "not converged" and e >= s.e_low:
+                raise ParjamError(f"minimisation did not converge at phi = {phi:.10f} "
+                                  f"(max|F| = {res.fmax:.2e})", collective=False)
+            if s.e_low <= e <= s.e_high:
+                return self.state(res, "phi_c", phi_c=phi, iterations=it)
+            if e < s.e_low:
+                lo = phi
+                phi = phi + step if np.isinf(hi) else 0.5 * (lo + hi)
+                step *= 2.0
+            else:
+                hi = phi
+                guess = self._predict_phi(res.energy)
+                phi = guess if lo < guess < hi else 0.5 * (lo + hi)
+            if hi - lo < 1e-15 * hi:
+                break
+        raise ParjamError(f"phi_c bisection did not land in the energy window after "
+                          f"{s.max_iter} steps (bracket {lo:.14f}..{hi:.14f})", collective=False)
+
+    def _predict_phi(self, energy):
+        """Volume fraction where E/N reaches the middle of the window, from the virial relation
+        E/(dE/dphi) = (phi - phi_c)/alpha of a jammed state with a fixed contact network."""
+        s = self.settings
+        p = self.pressure()
+        phi = self.pack.phi
+        if p <= 0 or energy <= 0:
+            return -1.0
+        excess = self.pack.alpha * energy * phi / (p * self.pack.volume)
+        target = 0.5 * (s.e_low + s.e_high) * self.pack.n
+        return phi - excess + excess * (target / energy) ** (1.0 / self.pack.alpha)
+
+    def at_phi(self, phi, label, **info):
+        """Minimised state at volume fraction phi; UnjammedError if the energy vanishes."""
+        res = self.relax(phi, e_stop=self.settings.e_low * self.pack.n * 1e-6)
+        if res.status == "unjammed":
+            raise UnjammedError(f"unjammed at phi = {phi:.10f}: energy per particle reached "
+                                f"{res.energy / self.pack.n:.3e}", collective=False)
+        if not res.ok:
+            raise ParjamError(f"minimisation did not converge at phi = {phi:.10f} "
+                              f"(max|F| = {res.fmax:.2e})", collective=False)
+        return self.state(res, label, **info)
+
+    def ladder(self, phi_c, dphis, direction="compress"):
+        """States at phi_c + dphi, compressing upwards or decompressing from the largest."""
+        order = sorted(dphis) if direction == "compress" else sorted(dphis, reverse=True)
+        out = []
+        for k, dphi in enumerate(order):
+            self._log(f"dphi step {k + 1}/{len(order)}: dphi = {dphi:.1e}")
+            st = self.at_phi(phi_c + dphi, f"dphi{dphi:.1e}", dphi=dphi, phi_c=phi_c,
+                             ladder=direction)
+            out.append(st)
+        return out
+
+    def at_pressure(self, p_target, phi_c):
+        """Volume fraction where the minimised pressure equals p_target (relative ptol):
+        secant iterations on p^(1/(alpha-1)), which is linear in phi near jamming."""
+        s = self.settings
+        expo = 1.0 / (self.pack.alpha - 1.0)
+        g_t = p_target**expo
+        pts = [(phi_c, 0.0)]
+        phi = phi_c + g_t  # first guess: p ~ dphi^(alpha-1) with unit prefactor
+        for it in range(1, s.max_iter + 1):
+            st = self.at_phi(phi, f"p{p_target:.1e}", phi_c=phi_c, target_pressure=p_target)
+            p = self.pressure()
+            self._log(f"pressure search {it}: phi = {phi:.12f}, p = {p:.6e} (target {p_target:.3e})")
+            if abs(p / p_target - 1.0) <= s.ptol:
+                st.info["iterations"] = it
+                return st
+            pts.append((phi, p**expo))
+            (x0, g0), (x1, g1) = pts[-2], pts[-1]
+            phi = x1 + (g_t - g1) * (x1 - x0) / (g1 - g0) if g1 != g0 else x1 * (1 + 1e-6)
+        raise ParjamError(f"pressure {p_target:g} not reached in {s.max_iter} steps",
+                          collective=False)
+
+    def destroy(self):
+        self.ff.destroy()

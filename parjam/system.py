@@ -1,0 +1,103 @@
+"""A packing of soft spheres in a periodic cubic (d = 3) or square (d = 2) box, and its geometry:
+diameters, volume fraction, minimum-image separations and neighbour pairs."""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from parjam import potential
+
+
+def sphere_volume(diam, d):
+    """Volume (d = 3) or area (d = 2) of spheres of diameter ``diam``."""
+    r = np.asarray(diam) / 2.0
+    return np.pi * r**2 if d == 2 else 4.0 / 3.0 * np.pi * r**3
+
+
+@dataclass
+class Packing:
+    """Positions in [0, L)^d, diameters, box edge L, and the potential's exponent alpha."""
+
+    pos: np.ndarray
+    diam: np.ndarray
+    L: float
+    alpha: float = 2.0
+    eps: float = 1.0
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.pos = np.ascontiguousarray(self.pos, dtype=np.float64)
+        self.diam = np.ascontiguousarray(self.diam, dtype=np.float64)
+        self.L = float(self.L)
+        self.alpha = potential.check_alpha(self.alpha)
+
+    @property
+    def n(self):
+        return self.pos.shape[0]
+
+    @property
+    def d(self):
+        return self.pos.shape[1]
+
+    @property
+    def volume(self):
+        return self.L**self.d
+
+    @property
+    def phi(self):
+        return float(sphere_volume(self.diam, self.d).sum() / self.volume)
+
+    def box_for_phi(self, phi):
+        """Box edge giving volume fraction phi with the same diameters."""
+        return float((sphere_volume(self.diam, self.d).sum() / phi) ** (1.0 / self.d))
+
+    def rescaled(self, phi):
+        """Affine rescaling of the box (and positions) to volume fraction phi."""
+        L = self.box_for_phi(phi)
+        pos = wrap(self.pos * (L / self.L), L)
+        return Packing(pos, self.diam.copy(), L, self.alpha, self.eps, dict(self.meta))
+
+    def copy(self):
+        return Packing(self.pos.copy(), self.diam.copy(), self.L, self.alpha, self.eps,
+                       dict(self.meta))
+
+
+def wrap(pos, L):
+    """Positions folded into [0, L): floor-based, then guarded against x == L from round-off."""
+    p = pos - L * np.floor(pos / L)
+    p[p >= L] -= L
+    p[p < 0.0] = 0.0
+    return p
+
+
+def min_image(dr, L):
+    """Minimum-image separation vectors (positions in [0, L) keep ~1e-16 L absolute precision)."""
+    return dr - L * np.rint(dr / L)
+
+
+def neighbour_pairs(pos, L, cutoff):
+    """All pairs i < j closer than ``cutoff`` (minimum image), sorted by (i, j).
+
+    A periodic k-d tree makes this O(N log N); the box must exceed twice the cutoff so that no pair
+    interacts through two images.
+    """
+    if L <= 2.0 * cutoff:
+        raise ValueError(f"box edge {L:.3g} is not larger than twice the neighbour cutoff "
+                         f"{cutoff:.3g}: too few particles for this box")
+    tree = cKDTree(pos, boxsize=L)
+    pairs = tree.query_pairs(cutoff, output_type="ndarray")
+    if pairs.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    pairs = np.sort(pairs, axis=1).astype(np.int64)
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    return pairs[order]
+
+
+def pair_geometry(pos, L, diam, pairs):
+    """Separation vectors r_ij = x_j - x_i (minimum image), distances and sigma_ij."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    rij = min_image(pos[j] - pos[i], L)
+    r = np.sqrt(np.einsum("ij,ij->i", rij, rij))
+    sigma = 0.5 * (diam[i] + diam[j])
+    return rij, r, sigma
