@@ -190,3 +190,31 @@ class Jammer:
 
     def destroy(self):
         self.ff.destroy()
+
+
+def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=1.4, alpha=2.0,
+                comm=None, phi_start=None, settings=None):
+    """Packings of one configuration at phi_c + dphi for each dphi (ascending), and phi_c.
+
+    The same (seed, member) gives the same configuration as ``parjam pack``.  ``comm`` defaults
+    to COMM_SELF, so every rank builds the same packing (handy in tests and scripts).
+    """
+    from parjam import env
+    from parjam.ensemble import member_rng
+
+    PETSc = env.petsc()
+    comm = PETSc.COMM_SELF if comm is None else comm
+    dispersity = dispersity or ("bi" if d == 2 else "mono")
+    phi0 = phi_start or {2: 0.86, 3: 0.66}[d]
+    pack = random_packing(d, n, phi0, alpha, dispersity, ratio, member_rng(seed, member))
+    jam = Jammer(comm, pack, settings)
+    try:
+        phic = jam.find_phi_c()
+        phi_c = phic.info["phi_c"]
+        states = jam.ladder(phi_c, list(dphis)) if len(dphis) else []
+    finally:
+        jam.destroy()
+    out = [s.pack for s in states]
+    for s, p in zip(states, out):
+        p.meta.update(s.info)
+    return phi_c, out

@@ -1,0 +1,1 @@
+"""Test-suite helpers: running pytest on every MPI rank."""
