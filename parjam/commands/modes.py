@@ -1,0 +1,153 @@
+"""``parjam modes``: vibrational spectra of a packing's dynamical matrices (docs/spectra.md)."""
+
+import os
+import sys
+
+import numpy as np
+
+from parjam.errors import ParjamError
+
+EXIT_INCOMPLETE = 4  # some requested pairs did not converge to the tolerance
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "modes", help="lowest modes or all modes in a frequency window of D, M or M'",
+        description="Eigenvalues lambda = omega^2 of the dynamical matrix of Eq. (1) restricted "
+        "to the non-rattlers, the d translations deflated: the full matrix D = M + M', the "
+        "relaxed-spring matrix M or the stress term M'. Per mode: residual, participation ratio, "
+        "transverse and longitudinal sums; D(omega) per mode with D0 and omega*. SLEPc objects "
+        "take options with the prefix modes_ (-modes_eps_view, -modes_st_mat_mumps_icntl_7 5).")
+    p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
+    p.add_argument("--matrix", nargs="+", default=["full"], choices=("full", "relaxed", "stress"),
+                   help="one or more matrices (default full); several give one file each, "
+                   "OUT with .MATRIX before .h5, e.g. --matrix full relaxed for Fig. 'compare'")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--k", type=int, help="number of lowest non-translational modes")
+    g.add_argument("--window", help="frequency window WA,WB: every mode with WA <= omega <= WB")
+    p.add_argument("--method", default="auto", choices=("auto", "dense", "sinvert", "slice"),
+                   help="auto: dense LAPACK up to 3000 dof, else sinvert (--k) or slice "
+                   "(--window)")
+    p.add_argument("--vectors", action="store_true", help="store the eigenvectors (K, N', d)")
+    p.add_argument("--tol", type=float, default=1e-10,
+                   help="accept pairs with ||D v - lambda v|| / ||D||_inf <= TOL (1e-10)")
+    p.add_argument("--target", type=float,
+                   help="sinvert target (default -1e-9 ||D||_inf, just below the zero cluster)")
+    p.add_argument("--bins", type=int, default=40, help="D(omega) bins (40)")
+    p.add_argument("--log-bins", action="store_true", help="logarithmic D(omega) bins")
+    p.add_argument("--omega-min", type=float, help="lowest edge of log bins")
+    p.add_argument("--plateau", help="plateau window W1,W2 for D0 and omega* (default: see docs)")
+    p.add_argument("--out", required=True, help="spectrum file to write (.h5)")
+    p.add_argument("--plot", help="PNG of D(omega), eps_perp/eps_par and participation")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(run=run)
+
+
+def parse_pair(text, name):
+    """'A,B' -> (A, B) floats, or a one-line error."""
+    try:
+        a, b = (float(x) for x in text.split(","))
+    except (ValueError, AttributeError):
+        raise ParjamError(f"{name} must be two numbers A,B, got {text!r}") from None
+    if not (np.isfinite(a) and np.isfinite(b)):
+        raise ParjamError(f"{name} must be finite, got {text!r}")
+    return a, b
+
+
+def output_paths(out, matrices):
+    if len(matrices) == 1:
+        return {matrices[0]: out}
+    stem, ext = os.path.splitext(out)
+    return {m: f"{stem}.{m}{ext or '.h5'}" for m in matrices}
+
+
+def validate(args):
+    if len(set(args.matrix)) != len(args.matrix):
+        raise ParjamError("--matrix lists a matrix twice")
+    if args.k is not None and args.k < 1:
+        raise ParjamError(f"--k must be >= 1, got {args.k}")
+    args.window_pair = parse_pair(args.window, "--window") if args.window else None
+    args.plateau_pair = parse_pair(args.plateau, "--plateau") if args.plateau else None
+    if args.bins < 1:
+        raise ParjamError(f"--bins must be >= 1, got {args.bins}")
+    if args.target is not None and not np.isfinite(args.target):
+        raise ParjamError("--target must be finite")
+    if args.method == "slice" and args.window is None:
+        raise ParjamError("--method slice needs --window WA,WB")
+
+
+def summary_line(kind, spec, dos):
+    w = spec.frequency
+    rng = f"omega {w[0]:.4g} .. {w[-1]:.4g}" if len(w) else "no modes"
+    extra = (f", D0 = {dos['D0']:.4g}, omega* = {dos['omega_star']:.4g}" if dos else "")
+    return (f"{kind}: {len(w)} modes by {spec.method} ({rng}), max residual "
+            f"{spec.error.max() if len(w) else 0:.1e}, {spec.seconds:.2f} s{extra}")
+
+
+def run(args):
+    from parjam import env, io, modes_io, spectrum
+    from parjam.progress import Progress
+
+    PETSc = env.petsc()
+    comm = PETSc.COMM_WORLD
+    rank = comm.getRank()
+    validate(args)
+    progress = Progress(comm.tompi4py(), args.quiet, "modes: ")
+    pack = io.read_packing(args.packing)
+    system = spectrum.active_system(pack)
+    progress(f"N' = {system.n} non-rattlers ({system.n_rattlers} rattlers), "
+             f"{len(system.r)} contacts, d = {system.d}")
+    prov = io.provenance(comm.getSize(), {"command": "modes"})
+    paths = output_paths(args.out, args.matrix)
+    code = 0
+    written = {}
+    for kind in args.matrix:
+        spec = spectrum.compute(comm, system, kind, k=args.k, window=args.window_pair,
+                                method=args.method, tol=args.tol, target=args.target,
+                                vectors=args.vectors, progress=progress)
+        dos = dos_or_none(spec, system, args)
+        if rank == 0:
+            write(paths[kind], spec, system, args.packing, dos, prov)
+            print(summary_line(kind, spec, dos), flush=True)
+            report_problems(kind, spec)
+        written[kind] = paths[kind]
+        if not spec.complete:
+            code = EXIT_INCOMPLETE
+    if args.plot and rank == 0:
+        from parjam.plot import spectra as plot_spectra
+
+        plot_spectra.spectra_figure([modes_io.read_spectrum(p) for p in written.values()],
+                                    args.plot)
+    return code
+
+
+def dos_or_none(spec, system, args):
+    from parjam import modes_io
+
+    if not np.any(spec.frequency > 0):
+        return None
+    return modes_io.dos_record(spec.frequency, system.n_modes, args.bins, args.log_bins,
+                               args.omega_min, args.plateau_pair)
+
+
+def write(path, spec, system, packing, dos, prov):
+    from parjam import modes_io
+
+    empty = {"omega": np.zeros(0), "edges": np.zeros(0), "density": np.zeros(0),
+             "note": "no positive frequency"}
+    try:
+        modes_io.write_spectrum(path, spec, system, packing, dos or empty, prov)
+    except OSError as exc:
+        raise ParjamError(f"{path}: cannot write ({exc})", collective=False) from None
+
+
+def report_problems(kind, spec):
+    if len(spec.rejected_eigenvalue) or spec.n_missing > 0:
+        print(f"parjam: warning: {kind}: only {len(spec.eigenvalue)} of {spec.n_requested} "
+              f"pairs reached residual <= {spec.tolerance:g}; {len(spec.rejected_eigenvalue)} "
+              f"rejected (stored under /modes/rejected), "
+              f"{max(spec.n_missing - len(spec.rejected_eigenvalue), 0)} not converged",
+              file=sys.stderr, flush=True)
+    if spec.unstable:
+        print(f"parjam: warning: {kind}: unstable packing: {spec.n_negative} eigenvalue(s) "
+              f"below -{spec.zero_tol:.1e} (beyond round-off)", file=sys.stderr, flush=True)

@@ -1,0 +1,112 @@
+"""The spectrum file (docs/spectra.md): one HDF5 file per (packing, matrix, method), H5MD header
+plus
+
+    /modes/eigenvalue            (K,)  ascending lambda = omega^2
+    /modes/frequency             (K,)  sign(lambda) sqrt|lambda|
+    /modes/error                 (K,)  ||D v - lambda v||_2 / ||D||_inf per pair
+    /modes/participation_ratio   (K,)
+    /modes/eps_perp, /modes/eps_par   (K,)  transverse / longitudinal sums (Fig. "trans")
+    /modes/eigenvector           (K, N', d)  only with --vectors
+    /modes/active_particles      (N',)  packing indices of the non-rattlers (rows of the matrix)
+    /modes/rejected/{eigenvalue,error}  pairs above the tolerance (reported, not kept above)
+    /dos/omega, /dos/edges, /dos/density  D(omega) per mode (attrs: binning, normalisation, D0,
+                                          omega_star, plateau window)
+
+with the run's settings as attributes of /modes.  Written atomically by rank 0 only.
+"""
+
+import json
+import os
+
+import h5py
+import numpy as np
+
+from parjam import io, observables
+from parjam.errors import ParjamError
+
+FORMAT = "parjam-spectrum 1"
+
+
+def mode_attrs(spec, system, packing_path, ranks):
+    """Attributes of /modes: what was computed, how, and from which file."""
+    return {
+        "format": FORMAT, "matrix": spec.matrix, "method": spec.method,
+        "tolerance": spec.tolerance, "norm_inf": spec.norm, "zero_tol": spec.zero_tol,
+        "target": spec.target, "interval_lambda": np.array(spec.interval, dtype=float),
+        "n_requested": spec.n_requested, "n_accepted": len(spec.eigenvalue),
+        "n_rejected": len(spec.rejected_eigenvalue), "complete": bool(spec.complete),
+        "n_negative": spec.n_negative, "unstable": bool(spec.unstable),
+        "translations_deflated": True, "rattlers_removed": True, "n_active": system.n,
+        "n_rattlers": system.n_rattlers, "dimension": system.d, "n_contacts": len(system.r),
+        "n_modes_total": system.n_modes, "alpha": system.alpha, "pressure": system.pressure,
+        "max_force": system.max_force, "ranks": int(ranks), "seconds": spec.seconds,
+        "packing_file": os.path.abspath(packing_path) if packing_path else "",
+        "packing_sha256": io.sha256(packing_path) if packing_path else "",
+        "solver_info": json.dumps(spec.info, default=float),
+    }
+
+
+def write_spectrum(path, spec, system, packing_path, dos, prov):
+    """Write one spectrum file (call on rank 0 only)."""
+    with io.atomic_h5(path) as f:
+        io.write_h5md_header(f, prov)
+        g = f.create_group("modes")
+        for key, val in mode_attrs(spec, system, packing_path, prov.get("ranks", 1)).items():
+            g.attrs[key] = val
+        g.create_dataset("eigenvalue", data=spec.eigenvalue)
+        g.create_dataset("frequency", data=spec.frequency)
+        g.create_dataset("error", data=spec.error)
+        g.create_dataset("participation_ratio", data=spec.participation_ratio)
+        g.create_dataset("eps_perp", data=spec.eps_perp)
+        g.create_dataset("eps_par", data=spec.eps_par)
+        g.create_dataset("active_particles", data=system.active.astype(np.int64))
+        if spec.vectors is not None:
+            g.create_dataset("eigenvector", data=spec.vectors)
+        rej = g.create_group("rejected")
+        rej.create_dataset("eigenvalue", data=spec.rejected_eigenvalue)
+        rej.create_dataset("error", data=spec.rejected_error)
+        write_dos(f, dos)
+
+
+def write_dos(f, dos):
+    g = f.create_group("dos")
+    for key in ("omega", "edges", "density"):
+        g.create_dataset(key, data=dos[key])
+    if "density_error" in dos:
+        g.create_dataset("density_error", data=dos["density_error"])
+    for key, val in dos.items():
+        if key not in ("omega", "edges", "density", "density_error"):
+            g.attrs[key] = val
+
+
+def dos_record(omega, n_modes, bins=40, log=False, omega_min=None, plateau=None):
+    """D(omega) of one spectrum on bins up to its highest computed frequency, with D0 and
+    omega* (definitions in parjam.observables)."""
+    pos = np.asarray(omega)[np.asarray(omega) > 0]
+    if len(pos) == 0:
+        raise ParjamError("no positive frequency: cannot build D(omega)")
+    edges = observables.dos_edges(float(pos.max()), bins, log, omega_min)
+    centres, density = observables.density_of_states(pos, n_modes, edges)
+    d0, wstar, window = observables.dos_summary(pos, n_modes, plateau)
+    return {"omega": centres, "edges": edges, "density": density,
+            "binning": "log" if log else "linear",
+            "normalisation": "per mode: counts / ((d N' - d) * bin width)",
+            "n_modes_total": int(n_modes), "D0": d0, "omega_star": wstar,
+            "plateau_window": np.array(window, dtype=float),
+            "definition": "D0 = mean density over the plateau window; omega* = omega_half / 2, "
+                          "omega_half the first frequency where N(omega)/(n omega) >= D0/2"}
+
+
+def read_spectrum(path):
+    """A spectrum file as a dict of arrays and attributes; ParjamError if it is not one."""
+    path = os.fspath(path)
+    if not os.path.isfile(path) or not h5py.is_hdf5(path):
+        raise ParjamError(f"{path}: not an HDF5 file")
+    with h5py.File(path, "r") as f:
+        if "modes" not in f or f["modes"].attrs.get("format") != FORMAT:
+            raise ParjamError(f"{path}: not a parjam spectrum file (no /modes of {FORMAT!r})")
+        g = f["modes"]
+        out = {key: g[key][()] for key in g if isinstance(g[key], h5py.Dataset)}
+        out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in g.attrs.items()}
+        out["dos"] = {key: f["dos"][key][()] for key in f["dos"]} if "dos" in f else {}
+    return out

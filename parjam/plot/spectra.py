@@ -1,0 +1,49 @@
+"""Figures of spectra: D(omega) of several matrices or ensembles (the paper's Fig. "compare"),
+the transverse/longitudinal ratio eps_perp/eps_par per mode (Fig. "trans") and participation."""
+
+import numpy as np
+
+from parjam.plot import pyplot
+
+
+def _label(spec):
+    a = spec.get("attrs", {})
+    return f"{a.get('matrix', '?')} ({a.get('method', '?')})"
+
+
+def spectra_figure(spectra, path):
+    """Three panels for spectrum dicts from parjam.modes_io.read_spectrum."""
+    plt = pyplot()
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8))
+    for spec in spectra:
+        lab = _label(spec)
+        dos = spec.get("dos", {})
+        if len(dos.get("omega", [])):
+            ax[0].plot(dos["omega"], dos["density"], "-o", ms=3, label=lab)
+        w = spec["frequency"]
+        ratio = spec["eps_perp"] / np.maximum(spec["eps_par"], 1e-300)
+        ax[1].semilogy(w, ratio, ".", ms=3, label=lab)
+        ax[2].semilogy(w, spec["participation_ratio"], ".", ms=3, label=lab)
+    ax[0].set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$ per mode", title="density of states")
+    ax[1].set(xlabel=r"$\omega$", ylabel=r"$\epsilon_\perp / \epsilon_\parallel$",
+              title="transverse / longitudinal")
+    ax[2].set(xlabel=r"$\omega$", ylabel="participation ratio", title="participation")
+    for a in ax:
+        a.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def ensemble_dos_figure(omega, density, error, path, label="ensemble", omega_star=None):
+    """Ensemble-averaged D(omega) with error bars (parjam dos --plot)."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(5, 3.8))
+    ax.errorbar(omega, density, yerr=error, fmt="-o", ms=3, capsize=2, label=label)
+    if omega_star is not None and np.isfinite(omega_star):
+        ax.axvline(omega_star, color="k", ls="--", lw=0.8, label=r"$\omega^*$")
+    ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$ per mode")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

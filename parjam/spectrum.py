@@ -1,0 +1,539 @@
+"""Vibrational spectra of the dynamical matrices of Eq. (1): the full D = M + M', the
+relaxed-spring M (Section III) and the stress term M' alone, for the non-rattlers of a packing.
+
+Methods (docs/spectra.md):
+
+- ``dense``: LAPACK (scipy.linalg.eigh) on the dense matrix restricted to the complement of the d
+  uniform translations (an orthonormal basis from a complete QR): the exact small-system reference;
+- ``sinvert``: the k eigenvalues nearest a target slightly below zero, SLEPc Krylov-Schur with
+  shift-and-invert, MUMPS Cholesky (LDL^T) of D - target I, the d translations removed by a
+  deflation space (EPSSetDeflationSpace) and an absolute convergence test;
+- ``slice``: every eigenvalue in an interval, SLEPc spectrum slicing (SBAIJ + MUMPS with
+  ICNTL(13) = 1 for the inertia), the count checked against the inertias at the interval ends.
+
+Every pair carries its true residual ||D v - lambda v||_2 / ||D||_inf (the infinity norm bounds
+the spectral norm of a symmetric matrix).  Pairs above the tolerance are dropped and reported,
+never silently kept.  Eigenvectors are formed one at a time for the per-mode observables
+(participation ratio, transverse/longitudinal sums, computed in parallel), and gathered to rank 0
+only when asked for.
+
+SLEPc/PETSc objects use the options prefix ``modes_`` (``-modes_eps_view``,
+``-modes_st_mat_mumps_icntl_7 5``, ``-modes_eps_krylovschur_partitions 2`` ...).
+"""
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from parjam import env, hessian, network, observables
+from parjam.errors import ParjamError, UnjammedError
+
+METHODS = ("auto", "dense", "sinvert", "slice")
+MATRICES = hessian.KINDS
+DENSE_MAX_DOF = 3000  # auto: dense LAPACK up to this many degrees of freedom d N'
+ZERO_TOL = 1e-9  # |lambda| / ||D||_inf below which an eigenvalue belongs to the zero cluster
+PREFIX = "modes_"
+
+
+# --- the system: non-rattlers re-indexed 0..N'-1 ---------------------------------------------------
+@dataclass
+class ActiveSystem:
+    """Non-rattlers of a packing (N' of them, re-indexed) and the contacts among them."""
+
+    n: int
+    d: int
+    active: np.ndarray  # original indices of the non-rattlers
+    i: np.ndarray
+    j: np.ndarray
+    rij: np.ndarray
+    r: np.ndarray
+    sigma: np.ndarray
+    alpha: float
+    eps: float
+    n_rattlers: int
+    n_iso: int
+    pressure: float
+    max_force: float
+
+    @property
+    def dof(self):
+        return self.n * self.d
+
+    @property
+    def n_modes(self):
+        """Non-translational modes: d N' - d."""
+        return observables.n_modes_total(self.n, self.d)
+
+    def blocks(self, kind):
+        """Per-contact blocks K_ij of Eq. (1)."""
+        return hessian.contact_blocks(self.rij, self.r, self.sigma, self.alpha, self.eps, kind)
+
+
+def active_system(pack, net=None):
+    """The non-rattler system of a packing; ParjamError/UnjammedError if it cannot vibrate."""
+    net = net if net is not None else network.analyze(pack)
+    if len(net.all_contacts) == 0:
+        raise ParjamError("the packing has no contacts (no overlapping pairs): nothing to "
+                          "vibrate; is it a jammed packing?")
+    if net.n_active == 0:
+        raise UnjammedError(f"unjammed packing: all {pack.n} particles are rattlers")
+    if net.n_contacts < net.n_iso:
+        raise UnjammedError(f"unjammed packing: Nc = {net.n_contacts} contacts among "
+                            f"N' = {net.n_active} non-rattlers, fewer than the isostatic "
+                            f"Nc_iso = {net.n_iso}: it has floppy modes")
+    keep = ~net.rattler
+    index = np.cumsum(keep) - 1
+    c = net.contacts
+    return ActiveSystem(
+        n=net.n_active, d=pack.d, active=np.nonzero(keep)[0], i=index[c.i], j=index[c.j],
+        rij=c.rij, r=c.r, sigma=c.sigma, alpha=pack.alpha, eps=pack.eps,
+        n_rattlers=net.n_rattlers, n_iso=net.n_iso, pressure=net.pressure,
+        max_force=net.max_force)
+
+
+def build_matrix(comm, system, blocks):
+    """Distributed MatAIJ (block size d) from per-contact blocks; each rank passes the contacts
+    touching its own rows."""
+    lo, hi = hessian.row_range(system.n, comm)
+    mine = ((system.i >= lo) & (system.i < hi)) | ((system.j >= lo) & (system.j < hi))
+    return hessian.assemble(comm, system.n, system.d, system.i[mine], system.j[mine],
+                            blocks[mine])
+
+
+def dynamical_matrix(comm, system, kind):
+    """Eq. (1): the full, relaxed or stress matrix of the non-rattlers."""
+    return build_matrix(comm, system, system.blocks(kind))
+
+
+def translation_vecs(A, d):
+    """The d normalised uniform translations (exact zero modes of a periodic packing)."""
+    n = A.getSize()[0] // d
+    vecs = []
+    for a in range(d):
+        v = A.createVecRight()
+        arr = v.getArray()
+        arr[:] = 0.0
+        arr.reshape(-1, d)[:, a] = 1.0 / np.sqrt(n)
+        vecs.append(v)
+    return vecs
+
+
+# --- results ---------------------------------------------------------------------------------------
+@dataclass
+class Spectrum:
+    """Accepted eigenpairs (ascending) and everything needed to judge them."""
+
+    eigenvalue: np.ndarray
+    error: np.ndarray  # ||D v - lambda v|| / ||D||_inf
+    participation_ratio: np.ndarray
+    eps_perp: np.ndarray
+    eps_par: np.ndarray
+    matrix: str
+    method: str
+    tolerance: float
+    norm: float  # ||D||_inf
+    n_requested: int  # k, or the inertia count of the window
+    target: float = float("nan")
+    interval: tuple = (float("nan"), float("nan"))  # lambda interval of a window
+    n_unstable: int = -1  # eigenvalues below -zero_tol (inertia; -1 if not known)
+    rejected_eigenvalue: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rejected_error: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    vectors: np.ndarray = None  # (K, N', d) on rank 0 when asked for
+    info: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+    @property
+    def frequency(self):
+        return observables.frequency(self.eigenvalue)
+
+    @property
+    def n_missing(self):
+        return self.n_requested - len(self.eigenvalue)
+
+    @property
+    def complete(self):
+        return self.n_missing == 0 and len(self.rejected_eigenvalue) == 0
+
+    @property
+    def zero_tol(self):
+        return ZERO_TOL * self.norm
+
+    @property
+    def n_negative(self):
+        """Eigenvalues below -zero_tol (beyond round-off), from the inertia when known."""
+        return max(int(np.sum(self.eigenvalue < -self.zero_tol)), self.n_unstable)
+
+    @property
+    def unstable(self):
+        """Negative eigenvalues of the full or relaxed matrix beyond round-off (the stress term
+        alone is indefinite by nature)."""
+        return self.matrix != "stress" and self.n_negative > 0
+
+
+def choose_method(method, dof, window):
+    """``auto``: dense up to DENSE_MAX_DOF degrees of freedom, else slice (window) or sinvert."""
+    if method != "auto":
+        return method
+    if dof <= DENSE_MAX_DOF:
+        return "dense"
+    return "slice" if window is not None else "sinvert"
+
+
+def window_interval(window, norm):
+    """lambda interval of a frequency window [wa, wb], its lower end lifted above the zero cluster
+    (spectrum slicing cannot start on the d translations)."""
+    wa, wb = window
+    if not (np.isfinite(wa) and np.isfinite(wb)) or wb <= wa:
+        raise ParjamError(f"empty frequency window [{wa}, {wb}]: need WA < WB")
+    la, lb = np.sign(wa) * wa * wa, np.sign(wb) * wb * wb
+    tol = ZERO_TOL * norm
+    if lb <= tol:
+        raise ParjamError(f"frequency window [{wa}, {wb}] holds no nonzero mode: it must reach "
+                          f"above the zero cluster (omega > {np.sqrt(tol):.2e})")
+    if abs(la) < tol or (la < 0 < lb):
+        la = tol
+    return la, lb
+
+
+def check_k(k, system):
+    if k is None or k < 1:
+        raise ParjamError(f"--k must be a positive number of modes, got {k}")
+    if k > system.n_modes:
+        raise ParjamError(f"--k {k} exceeds the {system.n_modes} non-translational modes "
+                          f"(d N' - d with N' = {system.n} non-rattlers, d = {system.d})")
+
+
+def compute(comm, system, kind="full", k=None, window=None, method="auto", tol=1e-10,
+            target=None, vectors=False, progress=None):
+    """Spectrum of one matrix of a system by the chosen method (see module doc)."""
+    if kind not in MATRICES:
+        raise ParjamError(f"unknown matrix {kind!r}; choose from {', '.join(MATRICES)}")
+    if method not in METHODS:
+        raise ParjamError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if (k is None) == (window is None):
+        raise ParjamError("give either a number of modes (--k) or a frequency window (--window)")
+    if not 0 < tol < 1e-2:
+        raise ParjamError(f"tolerance must lie in (0, 1e-2), got {tol}")
+    if k is not None:
+        check_k(k, system)
+    method = choose_method(method, system.dof, window)
+    if method == "slice" and window is None:
+        raise ParjamError("--method slice needs --window WA,WB")
+    t0 = time.perf_counter()
+    if method == "dense":
+        spec = dense_modes(comm, system, kind, k, window, tol, vectors)
+    else:
+        A = dynamical_matrix(comm, system, kind)
+        try:
+            spec = slepc_modes(comm, A, system, kind, method, k, window, tol, target, vectors,
+                               progress)
+        finally:
+            A.destroy()
+    spec.seconds = time.perf_counter() - t0
+    return spec
+
+
+# --- dense reference ---------------------------------------------------------------------------
+def deflation_basis(n, d):
+    """Orthonormal basis (d n x (d n - d)) of the complement of the uniform translations."""
+    T = np.zeros((n, d, d))
+    T[:, np.arange(d), np.arange(d)] = 1.0
+    Q, _ = np.linalg.qr(T.reshape(n * d, d), mode="complete")
+    return Q[:, d:]
+
+
+def dense_matrix(system, kind):
+    return hessian.dense_hessian(system.n, system.d, system.i, system.j, system.blocks(kind))
+
+
+def dense_eigh(H, basis, k=None, interval=None, vectors=True):
+    """Eigenpairs of the deflated dense matrix Q^T H Q: the k lowest or those in an interval;
+    vectors mapped back to the full space."""
+    import scipy.linalg
+
+    Hd = basis.T @ H @ basis
+    kw = {"subset_by_index": [0, k - 1]} if k is not None else {"subset_by_value": interval}
+    if not vectors:
+        return scipy.linalg.eigh(Hd, eigvals_only=True, **kw), None
+    lam, Y = scipy.linalg.eigh(Hd, **kw)
+    return lam, basis @ Y
+
+
+def count_below_dense(Hd, sigma):
+    """Eigenvalues of the symmetric Hd below sigma, from the inertia of an LDL^T factorisation
+    (Sylvester): no eigen-decomposition needed."""
+    import scipy.linalg
+
+    _, D, _ = scipy.linalg.ldl(Hd - sigma * np.eye(len(Hd)))
+    diag, off = np.diag(D).copy(), np.diag(D, 1).copy()
+    return int(np.sum(scipy.linalg.eigvalsh_tridiagonal(diag, off) < 0))
+
+
+def dense_modes(comm, system, kind, k, window, tol, want_vectors):
+    """The dense reference path: computed on rank 0 of ``comm`` and broadcast (without vectors:
+    only rank 0 returns them)."""
+    import copy
+
+    mpi = comm.tompi4py()
+    spec, message = None, None
+    if mpi.Get_rank() == 0:
+        try:
+            spec = _dense_on_rank0(system, kind, k, window, tol, want_vectors)
+        except ParjamError as exc:
+            message = str(exc)
+    message = mpi.bcast(message)
+    if message:
+        raise ParjamError(message)
+    if mpi.Get_size() == 1:
+        return spec
+    light = None
+    if mpi.Get_rank() == 0:
+        light = copy.copy(spec)
+        light.vectors = None
+    light = mpi.bcast(light)
+    return spec if mpi.Get_rank() == 0 else light
+
+
+def _dense_on_rank0(system, kind, k, window, tol, want_vectors):
+    H = dense_matrix(system, kind)
+    norm = float(np.abs(H).sum(axis=1).max())
+    Q = deflation_basis(system.n, system.d)
+    Hd = Q.T @ H @ Q
+    interval = window_interval(window, norm) if window is not None else None
+    n_unstable = count_below_dense(Hd, -ZERO_TOL * norm)
+    lam, V = dense_eigh(H, Q, k=k, interval=interval, vectors=True)
+    if window is not None and len(lam) == 0:
+        raise ParjamError(f"frequency window [{window[0]}, {window[1]}] holds no eigenvalue")
+    err = np.linalg.norm(H @ V - V * lam, axis=0) / norm
+    vec3 = V.T.reshape(len(lam), system.n, system.d)
+    ok = err <= tol
+    perp, par = observables.transverse_longitudinal(vec3[ok], system.i, system.j, system.rij,
+                                                    system.r)
+    return Spectrum(
+        eigenvalue=lam[ok], error=err[ok],
+        participation_ratio=observables.participation_ratio(vec3[ok]), eps_perp=perp,
+        eps_par=par, matrix=kind, method="dense", tolerance=tol, norm=norm,
+        n_requested=k if k is not None else len(lam),
+        interval=tuple(interval) if interval else (float("nan"),) * 2, n_unstable=n_unstable,
+        rejected_eigenvalue=lam[~ok], rejected_error=err[~ok],
+        vectors=vec3[ok] if want_vectors else None,
+        info={"solver": "scipy.linalg.eigh of Q^T D Q (Q: complement of the translations)",
+              "inertia": f"{n_unstable} eigenvalues below -zero_tol (LDL^T)"})
+
+
+# --- SLEPc paths ---------------------------------------------------------------------------------
+class _OptionDefaults:
+    """Set options-database defaults under the ``modes_`` prefix unless the user gave them;
+    remove ours afterwards so later solves start clean."""
+
+    def __init__(self, values):
+        self.values = values
+        self.ours = []
+
+    def __enter__(self):
+        opts = env.petsc().Options()
+        for name, value in self.values.items():
+            if not opts.hasName(PREFIX + name):
+                opts.setValue(PREFIX + name, value)
+                self.ours.append(PREFIX + name)
+        return self
+
+    def __exit__(self, *exc):
+        opts = env.petsc().Options()
+        for name in self.ours:
+            opts.delValue(name)
+
+
+def _configure_st(eps):
+    """Shift-and-invert with a direct MUMPS Cholesky (LDL^T) factorisation, no Krylov solve."""
+    st = eps.getST()
+    st.setType("sinvert")
+    ksp = st.getKSP()
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType("cholesky")
+    pc.setFactorSolverType("mumps")
+
+
+def sinvert_eps(A, k, target, abstol, deflation):
+    """Krylov-Schur for the k eigenvalues nearest ``target`` (slightly below zero), translations
+    deflated, absolute convergence test."""
+    SLEPc = env.slepc()
+    eps = SLEPc.EPS().create(A.getComm())
+    eps.setOperators(A)
+    eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
+    eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
+    eps.setDimensions(nev=k)
+    eps.setTarget(target)
+    eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
+    eps.setConvergenceTest(SLEPc.EPS.Conv.ABS)
+    eps.setTolerances(tol=abstol)
+    eps.setDeflationSpace(deflation)
+    _configure_st(eps)
+    eps.setOptionsPrefix(PREFIX)
+    eps.setFromOptions()
+    return eps
+
+
+def slice_eps(S, interval, abstol):
+    """Spectrum slicing of the SBAIJ matrix S over a lambda interval (every eigenvalue in it)."""
+    SLEPc = env.slepc()
+    eps = SLEPc.EPS().create(S.getComm())
+    eps.setOperators(S)
+    eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
+    eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
+    eps.setInterval(*interval)
+    eps.setWhichEigenpairs(SLEPc.EPS.Which.ALL)
+    eps.setConvergenceTest(SLEPc.EPS.Conv.ABS)
+    eps.setTolerances(tol=abstol)
+    _configure_st(eps)
+    eps.setOptionsPrefix(PREFIX)
+    eps.setFromOptions()
+    return eps
+
+
+# in the options database too: the slicing solver builds inner EPS objects from it
+MUMPS_DEFAULTS = {"st_type": "sinvert", "st_ksp_type": "preonly", "st_pc_type": "cholesky",
+                  "st_pc_factor_mat_solver_type": "mumps",
+                  "st_mat_mumps_icntl_13": "1",  # sequential root front: inertia on any ranks
+                  "st_mat_mumps_icntl_24": "1"}  # detect null pivots
+
+
+def mumps_stats(F):
+    """Fill, ordering and flops of a MUMPS factor (INFOG/RINFOG) for the report."""
+    orderings = {0: "AMD", 1: "user", 2: "AMF", 3: "SCOTCH", 4: "PORD", 5: "METIS", 6: "QAMD"}
+    try:
+        fill = F.getMumpsInfog(29)
+        fill = -fill * 1_000_000 if fill < 0 else fill
+        seq = F.getMumpsInfog(7)
+        par = F.getMumpsInfog(32) if hasattr(F, "getMumpsInfog") else 0
+        return {"factor_entries": int(fill), "flops": float(F.getMumpsRinfog(1)),
+                "ordering": orderings.get(seq, str(seq)) if par != 2 else "parallel (ICNTL 29)",
+                "analysis": "parallel" if par == 2 else "sequential"}
+    except Exception:  # an older PETSc without the accessors: report nothing
+        return {}
+
+
+def slepc_modes(comm, A, system, kind, method, k, window, tol, target, want_vectors, progress):
+    PETSc = env.petsc()
+    norm = A.norm(PETSc.NormType.INFINITY)
+    zero_tol = ZERO_TOL * norm
+    abstol = 0.1 * tol * norm  # SLEPc's estimate, with a margin for the true residual check
+    log = progress or (lambda msg: None)
+    with _OptionDefaults(MUMPS_DEFAULTS):
+        if method == "sinvert":
+            target = -zero_tol if target is None else float(target)
+            deflation = translation_vecs(A, system.d)
+            M = A.convert("sbaij")  # MUMPS reports the inertia of SBAIJ factors only
+            eps = sinvert_eps(M, k, target, abstol, deflation)
+        else:
+            interval = window_interval(window, norm)
+            M = A.convert("sbaij")
+            eps = slice_eps(M, interval, abstol)
+        stage = PETSc.Log.Stage("modes: eigensolve")
+        stage.push()
+        try:
+            log(f"{method}: {kind} matrix, {A.getSize()[0]} dof, ||D||_inf = {norm:.4g}")
+            eps.solve()
+        except PETSc.Error as exc:
+            raise ParjamError(f"SLEPc {method} failed ({exc}); see -modes_eps_view",
+                              collective=True) from None
+        finally:
+            stage.pop()
+        info = {"iterations": eps.getIterationNumber(), "converged": eps.getConverged()}
+        if method == "sinvert":
+            F = eps.getST().getKSP().getPC().getFactorMatrix()
+            n_unstable = F.getInertia()[0] if target <= -zero_tol else -1
+            info.update(mumps_stats(F))
+            spec = _collect(comm, eps, A, system, kind, method, k, tol, norm, want_vectors, log)
+            spec.target, spec.n_unstable = target, int(n_unstable)
+            for v in deflation:
+                v.destroy()
+        else:
+            shifts, inertias = eps.getKrylovSchurInertias()
+            count = int(inertias[-1] - inertias[0])
+            info.update({"inertia_shifts": [float(s) for s in shifts],
+                         "inertias": [int(i) for i in inertias],
+                         "below_window": int(inertias[0])})
+            spec = _collect(comm, eps, A, system, kind, method, count, tol, norm, want_vectors,
+                            log)
+            spec.interval = tuple(interval)
+            if interval[0] == zero_tol:  # below it: the d translations and unstable modes
+                spec.n_unstable = int(inertias[0]) - system.d
+            if count == 0:
+                raise ParjamError(f"frequency window [{window[0]}, {window[1]}] holds no "
+                                  f"eigenvalue (inertia count 0)")
+        spec.info.update(info)
+        eps.destroy()
+        M.destroy()
+    return spec
+
+
+class _ModeObservables:
+    """Participation ratio and transverse/longitudinal sums of distributed eigenvectors:
+    local reductions and products with the assembled unit-block matrices (no gathering)."""
+
+    def __init__(self, comm, system):
+        self.mpi = comm.tompi4py()
+        self.n, self.d = system.n, system.d
+        self.par = build_matrix(comm, system, observables.unit_blocks(system.rij, system.r, "par"))
+        self.perp = build_matrix(comm, system,
+                                 observables.unit_blocks(system.rij, system.r, "perp"))
+        self.w = self.par.createVecLeft()
+
+    def __call__(self, v):
+        loc = v.getArray(readonly=True).reshape(-1, self.d)
+        w2 = np.einsum("ia,ia->i", loc, loc)
+        s2, s4 = self.mpi.allreduce(np.array([w2.sum(), (w2 * w2).sum()]))
+        self.par.mult(v, self.w)
+        e_par = 0.5 * self.w.dot(v) / s2
+        self.perp.mult(v, self.w)
+        e_perp = 0.5 * self.w.dot(v) / s2
+        return s2 * s2 / (self.n * s4), e_perp, e_par
+
+    def destroy(self):
+        for obj in (self.par, self.perp, self.w):
+            obj.destroy()
+
+
+def _collect(comm, eps, A, system, kind, method, n_wanted, tol, norm, want_vectors, log):
+    """Accepted pairs (true residual <= tol), their observables and (rank 0) vectors."""
+    PETSc = env.petsc()
+    SLEPc = env.slepc()
+    stage = PETSc.Log.Stage("modes: observables")
+    stage.push()
+    nconv = eps.getConverged()
+    take = min(nconv, n_wanted)
+    obs = _ModeObservables(comm, system)
+    v = A.createVecRight()
+    scatter, v0 = PETSc.Scatter.toZero(v) if want_vectors else (None, None)
+    rows = []
+    vecs = []
+    for idx in range(take):
+        lam = eps.getEigenpair(idx, v).real
+        err = eps.computeError(idx, SLEPc.EPS.ErrorType.ABSOLUTE) / norm
+        rows.append((lam, err) + tuple(obs(v)))
+        if want_vectors:
+            scatter.scatter(v, v0, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+            if comm.getRank() == 0:
+                vecs.append(v0.getArray(readonly=True).copy())
+    obs.destroy()
+    v.destroy()
+    if scatter is not None:
+        scatter.destroy()
+        v0.destroy()
+    stage.pop()
+    table = np.array(rows, dtype=float).reshape(-1, 5)
+    order = np.argsort(table[:, 0], kind="stable")
+    table = table[order]
+    ok = table[:, 1] <= tol
+    vectors = None
+    if want_vectors and comm.getRank() == 0:
+        vectors = np.array(vecs).reshape(-1, system.n, system.d)[order][ok]
+    log(f"{method}: {nconv} converged, {int(ok.sum())} accepted of {n_wanted} wanted")
+    return Spectrum(
+        eigenvalue=table[ok, 0], error=table[ok, 1], participation_ratio=table[ok, 2],
+        eps_perp=table[ok, 3], eps_par=table[ok, 4], matrix=kind, method=method, tolerance=tol,
+        norm=norm, n_requested=n_wanted, rejected_eigenvalue=table[~ok, 0],
+        rejected_error=table[~ok, 1], vectors=vectors)
