@@ -19,7 +19,7 @@ def main():
     if comm.Get_rank() != 0:
         devnull = open(os.devnull, "w")
         os.dup2(devnull.fileno(), 1)
-        args += ["-q", "-p", "no:terminal"]
+        args += ["-q"]
     rc = int(pytest.main(args))
     worst = comm.allreduce(rc, op=MPI.MAX)
     sys.stdout.flush()
