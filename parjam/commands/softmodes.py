@@ -1,0 +1,130 @@
+"""``parjam softmodes``: soft modes of an isostatic packing after plane cuts (Sections II-III and
+the Appendix of Wyart et al. 2005): null-space count and basis, extension, f(x), trial modes."""
+
+import os
+
+import numpy as np
+
+from parjam.errors import ParjamError
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "softmodes", help="soft modes after cutting the contacts that cross planes",
+        description="Remove rattlers, cut every contact whose bond crosses the given planes, and "
+        "find the null space of the rigidity matrix of the rest (MUMPS inertia count, SLEPc "
+        "shift-and-invert basis orthogonal to the d translations). Reports the count against "
+        "d + q - 1, trivially localised modes, the extension of each mode, the overlap function "
+        "f(x), the extended subspace q'/q and the trial-mode energies against Eq. (kkk). "
+        "SLEPc/PETSc options: -soft_eps_* -soft_st_* (basis), -soft_inertia_* (counts).")
+    p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
+    p.add_argument("--cut", action="append", default=[], metavar="AXIS=FRACTION",
+                   help="cut the plane AXIS = FRACTION * L (e.g. x=0.5; x=0 cuts the bonds that "
+                   "wrap across the box edge); repeat for several planes")
+    p.add_argument("--subdivide", type=int, metavar="M",
+                   help="also cut the planes k L / M (k = 0..M-1) in every direction: M^d "
+                   "sub-boxes (Section III)")
+    p.add_argument("--e0", type=float, default=0.1,
+                   help="extension threshold of the extended subspace and of Eq. (kkk) (0.1)")
+    p.add_argument("--bins", type=int, default=10, help="slabs of the box for f(x) (10)")
+    p.add_argument("--vectors", action="store_true",
+                   help="also store the basis (/softmodes/basis, modes x N x d)")
+    p.add_argument("--allow-hyperstatic", action="store_true",
+                   help="analyse a packing that is not isostatic (Nc != Nc_iso) anyway")
+    p.add_argument("--out", required=True, help="output HDF5 file")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(run=run)
+
+
+def validate(args):
+    if not (np.isfinite(args.e0) and 0.0 < args.e0 < 1.0):
+        raise ParjamError(f"--e0 must lie in (0, 1), got {args.e0}")
+    if not (2 <= args.bins <= 100_000):
+        raise ParjamError(f"--bins must lie in [2, 100000], got {args.bins}")
+    if args.subdivide is not None and not (1 <= args.subdivide <= 1000):
+        raise ParjamError(f"--subdivide must lie in [1, 1000], got {args.subdivide}")
+    if not args.cut and args.subdivide is None:
+        raise ParjamError("no cut given: use --cut AXIS=FRACTION (e.g. --cut x=0.5) and/or "
+                          "--subdivide M")
+    if os.path.abspath(args.out) == os.path.abspath(args.packing):
+        raise ParjamError("--out must differ from the input packing")
+
+
+def planes_from(args, d):
+    from parjam import softmodes as sm
+
+    planes = [sm.parse_cut(text, d) for text in args.cut]
+    if args.subdivide is not None:
+        planes += sm.subdivision_planes(args.subdivide, d)
+    return list(dict.fromkeys(planes))  # unique, in the order given
+
+
+def check_output_dir(comm, path):
+    """Rank 0 makes sure the output directory exists and is writable; every rank agrees."""
+    problem = None
+    if comm.getRank() == 0:
+        directory = os.path.dirname(os.path.abspath(path))
+        try:
+            os.makedirs(directory, exist_ok=True)
+            if not os.access(directory, os.W_OK):
+                problem = f"cannot write to {directory}"
+        except OSError as exc:
+            problem = f"cannot create output directory {directory}: {exc.strerror}"
+    problem = comm.tompi4py().bcast(problem, root=0)
+    if problem:
+        raise ParjamError(problem)
+
+
+def run(args):
+    validate(args)
+    from parjam import env, io, softmodes as sm
+    from parjam.progress import Progress
+
+    PETSc = env.petsc()
+    comm = PETSc.COMM_WORLD
+    progress = Progress(comm, args.quiet, "softmodes: ")
+    check_output_dir(comm, args.out)
+    pack = io.read_packing(args.packing)
+    cs = sm.prepare(pack, planes_from(args, pack.d), args.allow_hyperstatic)
+    progress(f"N' = {cs.n} non-rattlers, Nc = {len(cs.contacts)} ({cs.excess:+d} from "
+             f"isostatic), q = {cs.q} cut contacts on {len(cs.planes)} plane(s)")
+    res = sm.analyse(comm, cs, args.e0, args.bins, progress)
+    prov = io.provenance(comm.getSize(), {
+        "command": "softmodes", "input": os.path.abspath(args.packing),
+        "input_sha256": io.sha256(args.packing) if comm.getRank() == 0 else "",
+        "planes": [p.label for p in cs.planes], "e0": args.e0, "bins": args.bins,
+        "allow_hyperstatic": bool(args.allow_hyperstatic)})
+    sm.write(comm, args.out, res, args.vectors, prov)
+    if comm.getRank() == 0:
+        print_summary(res, args.out)
+    return 0
+
+
+def print_summary(res, out):
+    s = res.summary()
+    cs = res.cs
+    exp = f"{s['expected']}" if s["expected"] is not None else "n/a (not isostatic)"
+    mismatch = s["expected"] is not None and s["count"] != s["expected"]
+    lines = [
+        f"planes            {' '.join(p.label for p in cs.planes)}",
+        f"N' / Nc / excess  {s['N_active']} / {s['Nc']} / {s['excess']:+d}",
+        f"cut contacts q    {s['q']}",
+        f"null space        {s['count']} (d + q - 1 = {exp}{'  MISMATCH' if mismatch else ''})",
+        f"  trivial         {s['trivial']} translations (not in the basis)",
+        f"  localised       {s['localised']} (particles left with < d contacts)",
+        f"  basis           {s['n_soft']} modes, gap {s['gap']:.3e} k, Eq. 3 residual "
+        f"{s['eq3_residual']:.1e}, |V^T V - I| {s['orthonormality']:.1e}",
+        f"f(x) minimum c    {s['c']:.3f}",
+        "q'/q              " + "  ".join(f"e0={e0:g}: {fr:.3f}" for e0, fr in res.fractions),
+        f"trial modes       q' = {s['q_prime']} with e > {s['e0']:g}: max energy "
+        f"{_fmt(s['trial_energy_max'])} <= omega_L^2 = {s['omega_L2']:.3e} (Eq. kkk)",
+        f"variational       {s['n_below_2omega_t2']} eigenmodes with omega^2 <= 2 omega_t^2 = "
+        f"{2 * s['omega_t2']:.3e} (need >= q'/2 = {s['q_prime'] / 2:g}): "
+        f"{'ok' if s['variational_ok'] else 'VIOLATED'}",
+        f"written           {out}",
+    ]
+    print("\n".join(lines), flush=True)
+
+
+def _fmt(x):
+    return "n/a" if x is None else f"{x:.3e}"
