@@ -1,0 +1,182 @@
+"""Figures of soft modes after cuts (2D packings): the paper's Fig. "softfig" (one soft mode drawn
+as arrows after 20 contacts along a vertical line are cut) and Fig. "figs" (which contacts a cut
+removes).  ``python -m parjam.plot.softmodes PACKING.h5 --out-dir DIR`` writes both PNGs."""
+
+import argparse
+import dataclasses
+import os
+import sys
+
+import numpy as np
+
+from parjam import softmodes as sm
+from parjam.plot import pyplot
+
+
+def crossing_height(cs, plane):
+    """Where each bond crossing ``plane`` meets it: the coordinate along the next axis."""
+    c = cs.contacts
+    a, b = plane.axis, (plane.axis + 1) % cs.d
+    x0 = plane.frac * cs.L
+    xi = cs.pos[c.i, a]
+    image = x0 + cs.L * np.floor((np.maximum(xi, xi + c.rij[:, a]) - x0) / cs.L)
+    t = (image - xi) / np.where(c.rij[:, a] == 0, np.inf, c.rij[:, a])
+    return np.mod(cs.pos[c.i, b] + t * c.rij[:, b], cs.L)
+
+
+def segment_cut(cs, plane, ncut):
+    """A copy of ``cs`` cutting only ``ncut`` consecutive contacts along ``plane`` (centred on
+    the middle of the box): the paper's "contacts along a vertical line"."""
+    on = sm.crossing(cs.pos[cs.contacts.i, plane.axis], cs.contacts.rij[:, plane.axis], cs.L,
+                     plane.frac * cs.L)
+    idx = np.flatnonzero(on)
+    if len(idx) < ncut:
+        raise sm.ParjamError(f"the plane {plane.label} crosses only {len(idx)} contacts, "
+                             f"fewer than {ncut}")
+    h = crossing_height(cs, plane)[idx]
+    order = idx[np.argsort(np.abs(h - 0.5 * cs.L))][:ncut]
+    mask = np.zeros(len(cs.contacts), dtype=bool)
+    mask[order] = True
+    return dataclasses.replace(cs, is_cut=mask, per_plane=[ncut])
+
+
+def soft_space(comm, cs):
+    """(count, local basis rows) of the null space of a cut system, translations excluded."""
+    M = sm.relaxed_matrix(comm, cs, cs.kept)
+    scale = sm.stiffness_scale(cs.kept, cs.alpha, cs.eps)
+    count = sm.null_count(comm, M, scale)
+    nb = sm.null_basis(comm, M, cs.d, count - cs.d, scale)
+    M.destroy()
+    return count, nb.V
+
+
+def most_extended(comm, cs, V):
+    """The soft mode of largest extension e (the top eigenvector of G projected on the soft
+    space, G = sin^2(pi x / L) from the cut line): basis independent, unlike any one column."""
+    g = sm.modulation(cs.pos, cs.L, [sm.Plane(0, 0.5)])
+    e, W = sm.extended_basis(comm, V, g**2)
+    return W[:, -1], float(e[-1])
+
+
+def _disks(ax, pos, diam, L, colors, lw=0.3):
+    from matplotlib.collections import EllipseCollection
+
+    shifts = [(sx, sy) for sx in (-L, 0, L) for sy in (-L, 0, L)]
+    for sx, sy in shifts:
+        offs = pos + np.array([sx, sy])
+        keep = np.all((offs > -1) & (offs < L + 1), axis=1)
+        coll = EllipseCollection(diam[keep], diam[keep], 0.0, units="xy", offsets=offs[keep],
+                                 transOffset=ax.transData, facecolors=np.asarray(colors)[keep],
+                                 edgecolors="0.4", linewidths=lw)
+        ax.add_collection(coll)
+
+
+def _bonds(ax, pos, c, **kw):
+    """Contacts as segments, drawn from both ends so that bonds across the box edge show on
+    both sides."""
+    from matplotlib.collections import LineCollection
+
+    seg = np.concatenate([np.stack([pos[c.i], pos[c.i] + c.rij], axis=1),
+                          np.stack([pos[c.j] - c.rij, pos[c.j]], axis=1)])
+    ax.add_collection(LineCollection(seg, **kw))
+
+
+def _save(plt, fig, path, colors=64):
+    """PNG at 72 dpi, palette-quantised when Pillow is there (the docs keep small images)."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=72)
+    plt.close(fig)
+    try:
+        from PIL import Image
+    except ImportError:
+        return
+    with Image.open(path) as im:
+        small = im.convert("RGB").quantize(colors)
+    small.save(path, optimize=True)
+
+
+def _frame(ax, L, title):
+    ax.set_xlim(0, L)
+    ax.set_ylim(0, L)
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title(title, fontsize=9)
+
+
+def softfig(pack, path, ncut=20, comm=None):
+    """Fig. "softfig": a soft mode of a 2D packing after ``ncut`` contacts along x = L/2 are cut."""
+    from parjam import env
+
+    comm = comm or env.petsc().COMM_SELF
+    cs = segment_cut(sm.prepare(pack, [sm.Plane(0, 0.5)]), sm.Plane(0, 0.5), ncut)
+    count, V = soft_space(comm, cs)
+    mode, ext = most_extended(comm, cs, V)
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.2, 6.2))
+    colors = np.where(np.isin(np.arange(pack.n), cs.original), "0.93", "0.75")
+    _disks(ax, pack.pos, pack.diam, pack.L, colors, lw=0.2)
+    cut = cs.cut
+    _bonds(ax, cs.pos, cut, colors="red", linewidths=2.0)
+    u = mode.reshape(cs.n, cs.d)
+    scale = 2.5 / np.abs(u).max()
+    ax.quiver(cs.pos[:, 0], cs.pos[:, 1], u[:, 0] * scale, u[:, 1] * scale, angles="xy",
+              scale_units="xy", scale=1.0, width=0.0025, color="navy")
+    _frame(ax, pack.L, f"N = {pack.n}: {ncut} contacts cut (red) along x = L/2; "
+           f"{count - cs.d} soft modes besides the {cs.d} translations;\n"
+           f"the most extended one (e = {ext:.2f}) as arrows")
+    _save(plt, fig, path)
+    return {"count": count, "q": ncut, "extension": ext}
+
+
+def figs(pack, path, x0=0.5, m=2):
+    """Fig. "figs": which contacts a cut removes (left: the plane x = x0 L, zoomed; right: the
+    m^d sub-boxes of Section III) and which particles are left with fewer than d contacts."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5.6))
+    for ax, planes, zoom in ((axes[0], [sm.Plane(0, x0)], True),
+                             (axes[1], sm.subdivision_planes(m, pack.d), False)):
+        cs = sm.prepare(pack, planes)
+        colors = np.full(pack.n, "0.75", dtype=object)
+        colors[cs.original] = "0.95"
+        colors[cs.original[cs.localised_particles]] = "orange"
+        _disks(ax, pack.pos, pack.diam, pack.L, colors.astype(str))
+        kept, cut = cs.kept, cs.cut
+        _bonds(ax, cs.pos, kept, colors="0.25", linewidths=0.6)
+        _bonds(ax, cs.pos, cut, colors="red", linewidths=2.0)
+        for p in planes:
+            line = ax.axvline if p.axis == 0 else ax.axhline
+            line(p.frac * pack.L, color="C0", ls="--", lw=1.0)
+        title = (f"plane x = {x0:g} L (zoom): q = {cs.q} contacts cut (red);\n"
+                 f"orange: left with < d contacts ({cs.localised} localised modes)"
+                 if zoom else f"{m}$^{pack.d}$ sub-boxes: q = {cs.q} contacts cut;\n"
+                 "bonds wrapping across the box edge count at the planes at 0")
+        _frame(ax, pack.L, title)
+        if zoom:
+            w = 0.2 * pack.L
+            ax.set_xlim(x0 * pack.L - w, x0 * pack.L + w)
+            ax.set_ylim(0.5 * pack.L - w, 0.5 * pack.L + w)
+    _save(plt, fig, path)
+
+
+def main(argv=None):
+    from parjam import env, io
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("packing", help="an isostatic 2D packing (about 1000 particles)")
+    p.add_argument("--out-dir", default=".", help="where softfig.png and figs.png go")
+    p.add_argument("--ncut", type=int, default=20, help="contacts cut for softfig (20)")
+    args = p.parse_args(argv)
+    env.init()
+    pack = io.read_packing(args.packing)
+    if pack.d != 2:
+        raise sm.ParjamError("the figures need a 2D packing")
+    os.makedirs(args.out_dir, exist_ok=True)
+    info = softfig(pack, os.path.join(args.out_dir, "softfig.png"), args.ncut)
+    figs(pack, os.path.join(args.out_dir, "figs.png"))
+    print(f"softfig: {info}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
