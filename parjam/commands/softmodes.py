@@ -75,6 +75,16 @@ def check_output_dir(comm, path):
         raise ParjamError(problem)
 
 
+def peak_rss_mb(comm):
+    """Largest resident set size over the ranks so far (MB)."""
+    import resource
+
+    from mpi4py import MPI
+
+    mine = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
+    return float(comm.tompi4py().allreduce(mine, op=MPI.MAX))
+
+
 def run(args):
     validate(args)
     from parjam import env, io, softmodes as sm
@@ -89,6 +99,7 @@ def run(args):
     progress(f"N' = {cs.n} non-rattlers, Nc = {len(cs.contacts)} ({cs.excess:+d} from "
              f"isostatic), q = {cs.q} cut contacts on {len(cs.planes)} plane(s)")
     res = sm.analyse(comm, cs, args.e0, args.bins, progress)
+    res.solver["peak_rss_mb"] = peak_rss_mb(comm)
     prov = io.provenance(comm.getSize(), {
         "command": "softmodes", "input": os.path.abspath(args.packing),
         "input_sha256": io.sha256(args.packing) if comm.getRank() == 0 else "",
@@ -114,13 +125,16 @@ def print_summary(res, out):
         f"  localised       {s['localised']} (particles left with < d contacts)",
         f"  basis           {s['n_soft']} modes, gap {s['gap']:.3e} k, Eq. 3 residual "
         f"{s['eq3_residual']:.1e}, |V^T V - I| {s['orthonormality']:.1e}",
-        f"f(x) minimum c    {s['c']:.3f}",
+        f"f(x) minimum c    {s['c']:.3f} ({s['c_nontrivial']:.3f} without the localised modes)",
         "q'/q              " + "  ".join(f"e0={e0:g}: {fr:.3f}" for e0, fr in res.fractions),
         f"trial modes       q' = {s['q_prime']} with e > {s['e0']:g}: max energy "
         f"{_fmt(s['trial_energy_max'])} <= omega_L^2 = {s['omega_L2']:.3e} (Eq. kkk)",
         f"variational       {s['n_below_2omega_t2']} eigenmodes with omega^2 <= 2 omega_t^2 = "
         f"{2 * s['omega_t2']:.3e} (need >= q'/2 = {s['q_prime'] / 2:g}): "
         f"{'ok' if s['variational_ok'] else 'VIOLATED'}",
+        f"time / memory     count {res.solver['seconds_count']:.2f} s, null space "
+        f"{res.solver['seconds_null_space']:.2f} s, analysis {res.solver['seconds_analysis']:.2f} s;"
+        f" peak {res.solver['peak_rss_mb']:.0f} MB per rank",
         f"written           {out}",
     ]
     print("\n".join(lines), flush=True)
