@@ -431,42 +431,51 @@ def slepc_modes(comm, A, system, kind, method, k, window, tol, target, want_vect
             interval = window_interval(window, norm)
             M = A.convert("sbaij")
             eps = slice_eps(M, interval, abstol)
-        stage = PETSc.Log.Stage("modes: eigensolve")
-        stage.push()
         try:
-            log(f"{method}: {kind} matrix, {A.getSize()[0]} dof, ||D||_inf = {norm:.4g}")
-            eps.solve()
-        except PETSc.Error as exc:
-            raise ParjamError(f"SLEPc {method} failed ({exc}); see -modes_eps_view",
-                              collective=True) from None
+            spec = _solve_and_collect(comm, eps, A, system, kind, method, k, window, tol, norm,
+                                      target, want_vectors, log)
         finally:
-            stage.pop()
-        info = {"iterations": eps.getIterationNumber(), "converged": eps.getConverged()}
-        if method == "sinvert":
-            F = eps.getST().getKSP().getPC().getFactorMatrix()
-            n_unstable = F.getInertia()[0] if target <= -zero_tol else -1
-            info.update(mumps_stats(F))
-            spec = _collect(comm, eps, A, system, kind, method, k, tol, norm, want_vectors, log)
-            spec.target, spec.n_unstable = target, int(n_unstable)
-            for v in deflation:
+            eps.destroy()
+            M.destroy()
+            for v in (deflation if method == "sinvert" else []):
                 v.destroy()
-        else:
-            shifts, inertias = eps.getKrylovSchurInertias()
-            count = int(inertias[-1] - inertias[0])
-            info.update({"inertia_shifts": [float(s) for s in shifts],
-                         "inertias": [int(i) for i in inertias],
-                         "below_window": int(inertias[0])})
-            spec = _collect(comm, eps, A, system, kind, method, count, tol, norm, want_vectors,
-                            log)
-            spec.interval = tuple(interval)
-            if interval[0] == zero_tol:  # below it: the d translations and unstable modes
-                spec.n_unstable = int(inertias[0]) - system.d
-            if count == 0:
-                raise ParjamError(f"frequency window [{window[0]}, {window[1]}] holds no "
-                                  f"eigenvalue (inertia count 0)")
-        spec.info.update(info)
-        eps.destroy()
-        M.destroy()
+    return spec
+
+
+def _solve_and_collect(comm, eps, A, system, kind, method, k, window, tol, norm, target,
+                       want_vectors, log):
+    PETSc = env.petsc()
+    zero_tol = ZERO_TOL * norm
+    stage = PETSc.Log.Stage("modes: eigensolve")
+    stage.push()
+    try:
+        log(f"{method}: {kind} matrix, {A.getSize()[0]} dof, ||D||_inf = {norm:.4g}")
+        eps.solve()
+    except PETSc.Error as exc:
+        raise ParjamError(f"SLEPc {method} failed ({exc}); see -modes_eps_view") from None
+    finally:
+        stage.pop()
+    info = {"iterations": eps.getIterationNumber(), "converged": eps.getConverged()}
+    if method == "sinvert":
+        F = eps.getST().getKSP().getPC().getFactorMatrix()
+        n_unstable = F.getInertia()[0] if target <= -zero_tol else -1
+        info.update(mumps_stats(F))
+        spec = _collect(comm, eps, A, system, kind, method, k, tol, norm, want_vectors, log)
+        spec.target, spec.n_unstable = target, int(n_unstable)
+    else:
+        interval = eps.getInterval()
+        shifts, inertias = eps.getKrylovSchurInertias()
+        count = int(inertias[-1] - inertias[0])
+        if count == 0:
+            raise ParjamError(f"frequency window [{window[0]}, {window[1]}] holds no "
+                              f"eigenvalue (inertia count 0)")
+        info.update({"inertia_shifts": [float(s) for s in shifts],
+                     "inertias": [int(i) for i in inertias], "below_window": int(inertias[0])})
+        spec = _collect(comm, eps, A, system, kind, method, count, tol, norm, want_vectors, log)
+        spec.interval = tuple(interval)
+        if interval[0] == zero_tol:  # below it: the d translations and unstable modes
+            spec.n_unstable = int(inertias[0]) - system.d
+    spec.info.update(info)
     return spec
 
 
