@@ -452,7 +452,8 @@ def _solve_and_collect(comm, eps, A, system, kind, method, k, window, tol, norm,
         log(f"{method}: {kind} matrix, {A.getSize()[0]} dof, ||D||_inf = {norm:.4g}")
         eps.solve()
     except PETSc.Error as exc:
-        raise ParjamError(f"SLEPc {method} failed ({exc}); see -modes_eps_view") from None
+        why = str(exc).strip().splitlines()[-1].split("] ", 1)[-1]  # the stack's message
+        raise ParjamError(f"SLEPc {method} failed: {why}") from None
     finally:
         stage.pop()
     info = {"iterations": eps.getIterationNumber(), "converged": eps.getConverged()}
