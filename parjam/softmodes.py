@@ -631,6 +631,8 @@ class SoftModes:
     ortho: float  # max |V^T V - I|
     overlap: np.ndarray  # (nbins, 3): x/L, f, f without the trivially localised modes
     trial_energy: np.ndarray  # <dR*|M_uncut|dR*> per basis mode (nan where e ~ 0)
+    modulated_energy: np.ndarray  # <g dR|M_uncut|g dR> = e * trial energy, bounded by
+    #                               kappa z_max |grad g|^2 for every soft mode
     e0: float
     omega_L2: float  # Eq. (kkk) for e0
     grad2: float
@@ -665,6 +667,7 @@ class SoftModes:
             "c": self.c_bound, "c_nontrivial": self.c_nontrivial, "omega_L2": self.omega_L2,
             "trial_energy_max": float(np.max(self.trial_energy[ext])) if ext.any() else None,
             "omega_t2": self.omega_t2, "n_below_2omega_t2": self.n_below,
+            "mean_modulated_energy": float(np.mean(self.modulated_energy)),
             "variational_ok": bool(self.n_below >= 0.5 * self.q_prime),
         }
 
@@ -725,8 +728,8 @@ def _characterise(comm, cs, nb, count, e0, nbins):
     centres, f = overlap_function(comm, V, u, nbins)
     _, f_nt = overlap_function(comm, without_localised(comm, cs, V, nb.lo, nb.hi), u, nbins)
     Mu = relaxed_matrix(comm, cs, cs.contacts)
-    E = energies(comm, Mu, trial_modes(V, g, e))
-    E[e <= 1e-12] = np.nan
+    Eg = energies(comm, Mu, np.repeat(g, cs.d)[:, None] * V)  # <g dR|M|g dR>
+    E = np.where(e > 1e-12, Eg / np.maximum(e, 1e-12), np.nan)  # Eq. (rr), C_b = e_b^-1/2
     grad2 = gradient_bound(cs.L, cs.planes)
     ext = e > e0
     omega_t2 = float(np.mean(E[ext])) if ext.any() else 0.0
@@ -734,8 +737,8 @@ def _characterise(comm, cs, nb, count, e0, nbins):
     Mu.destroy()
     scale = stiffness_scale(cs.kept, cs.alpha, cs.eps)
     return SoftModes(cs, count, count - cs.d, V, nb.lo, nb.hi, e, nb.rayleigh,
-                     nb.gap / scale, 0.0, ortho, np.stack([centres, f, f_nt], axis=1), E, e0,
-                     omega_L2(e0, cs.kappa, cs.z_max, grad2), grad2, omega_t2, n_below,
+                     nb.gap / scale, 0.0, ortho, np.stack([centres, f, f_nt], axis=1), E, Eg,
+                     e0, omega_L2(e0, cs.kappa, cs.z_max, grad2), grad2, omega_t2, n_below,
                      extended_fraction(e, cs.q))
 
 
@@ -789,7 +792,8 @@ def _write_tables(g, res):
     te = g.create_dataset("trial_energy", data=res.trial_energy)
     for key, val in (("e0", res.e0), ("omega_L2", res.omega_L2), ("grad_g_max2", res.grad2),
                      ("kappa", cs.kappa), ("z_max", cs.z_max), ("q_prime", res.q_prime),
-                     ("omega_t2", res.omega_t2), ("n_below_2omega_t2", res.n_below)):
+                     ("omega_t2", res.omega_t2), ("n_below_2omega_t2", res.n_below),
+                     ("mean_modulated_energy", float(np.mean(res.modulated_energy)))):
         te.attrs[key] = val
     fr = g.create_dataset("extended_fraction", data=res.fractions)
     fr.attrs["columns"] = "e0, q'/q"
