@@ -338,8 +338,13 @@ def null_basis(comm, M, d, n_soft, scale, prefix="soft_", margin=4, tol=1e-12):
     nev = n_soft + margin
     eps = SLEPc.EPS().create(comm=comm)
     try:
-        _configure_eps(eps, M, d, nev, scale, prefix, tol)
-        eps.solve()
+        try:
+            _configure_eps(eps, M, d, nev, scale, prefix, tol)
+            eps.solve()
+        except PETSc.Error as exc:
+            raise ParjamError(f"SLEPc could not compute the soft modes (PETSc error "
+                              f"{exc.ierr}; see the messages above; check the -{prefix}eps_* "
+                              f"and -{prefix}st_* options)") from None
         nconv = eps.getConverged()
         if nconv < n_soft:
             raise ParjamError(f"SLEPc found {nconv} of the {n_soft} soft modes (raise "

@@ -113,15 +113,15 @@ def softfig(pack, path, ncut=20, comm=None):
     count, V = soft_space(comm, cs)
     mode, ext = most_extended(comm, cs, V)
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6.2, 6.2))
+    fig, ax = plt.subplots(figsize=(7.5, 7.5))
     colors = np.where(np.isin(np.arange(pack.n), cs.original), "0.93", "0.75")
     _disks(ax, pack.pos, pack.diam, pack.L, colors, lw=0.2)
-    cut = cs.cut
-    _bonds(ax, cs.pos, cut, colors="red", linewidths=2.0)
     u = mode.reshape(cs.n, cs.d)
-    scale = 2.5 / np.abs(u).max()
+    size = np.linalg.norm(u, axis=1)
+    scale = 1.0 / np.percentile(size, 95)  # the 5% largest displacements exceed one diameter
     ax.quiver(cs.pos[:, 0], cs.pos[:, 1], u[:, 0] * scale, u[:, 1] * scale, angles="xy",
-              scale_units="xy", scale=1.0, width=0.0025, color="navy")
+              scale_units="xy", scale=1.0, width=0.0018, headwidth=4, color="navy", zorder=2)
+    _bonds(ax, cs.pos, cs.cut, colors="red", linewidths=3.0, zorder=3)
     _frame(ax, pack.L, f"N = {pack.n}: {ncut} contacts cut (red) along x = L/2; "
            f"{count - cs.d} soft modes besides the {cs.d} translations;\n"
            f"the most extended one (e = {ext:.2f}) as arrows")
