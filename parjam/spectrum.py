@@ -3,8 +3,8 @@ relaxed-spring M (Section III) and the stress term M' alone, for the non-rattler
 
 Methods (docs/spectra.md):
 
-- ``dense``: LAPACK (scipy.linalg.eigh) on the dense matrix restricted to the complement of the d
-  uniform translations (an orthonormal basis from a complete QR): the exact small-system reference;
+- ``dense``: LAPACK (scipy.linalg.eigh) on the dense matrix with the d uniform translations moved
+  above the spectrum (Hotelling deflation): the exact small-system reference;
 - ``sinvert``: the k eigenvalues nearest a target slightly below zero, SLEPc Krylov-Schur with
   shift-and-invert, MUMPS Cholesky (LDL^T) of D - target I, the d translations removed by a
   deflation space (EPSSetDeflationSpace) and an absolute convergence test;
@@ -235,29 +235,28 @@ def compute(comm, system, kind="full", k=None, window=None, method="auto", tol=1
 
 
 # --- dense reference ---------------------------------------------------------------------------
-def deflation_basis(n, d):
-    """Orthonormal basis (d n x (d n - d)) of the complement of the uniform translations."""
-    T = np.zeros((n, d, d))
-    T[:, np.arange(d), np.arange(d)] = 1.0
-    Q, _ = np.linalg.qr(T.reshape(n * d, d), mode="complete")
-    return Q[:, d:]
-
-
 def dense_matrix(system, kind):
     return hessian.dense_hessian(system.n, system.d, system.i, system.j, system.blocks(kind))
 
 
-def dense_eigh(H, basis, k=None, interval=None, vectors=True):
-    """Eigenpairs of the deflated dense matrix Q^T H Q: the k lowest or those in an interval;
-    vectors mapped back to the full space."""
+def deflated_dense(H, n, d, norm):
+    """H + c T T^T with T the normalised translations and c = 2 ||H||_inf (above the spectrum):
+    the translations (exact null vectors) move to c, every other eigenpair is unchanged, so the
+    lowest d n - d eigenpairs are those of the deflated matrix (Hotelling deflation, O(n^2))."""
+    Hs = H.copy().reshape(n, d, n, d)
+    for a in range(d):
+        Hs[:, a, :, a] += 2.0 * norm / n
+    return Hs.reshape(n * d, n * d)
+
+
+def dense_eigh(Hdefl, k=None, interval=None, vectors=True):
+    """The k lowest eigenpairs of a deflated dense matrix, or those in a lambda interval."""
     import scipy.linalg
 
-    Hd = basis.T @ H @ basis
     kw = {"subset_by_index": [0, k - 1]} if k is not None else {"subset_by_value": interval}
     if not vectors:
-        return scipy.linalg.eigh(Hd, eigvals_only=True, **kw), None
-    lam, Y = scipy.linalg.eigh(Hd, **kw)
-    return lam, basis @ Y
+        return scipy.linalg.eigh(Hdefl, eigvals_only=True, **kw), None
+    return scipy.linalg.eigh(Hdefl, **kw)
 
 
 def count_below_dense(Hd, sigma):
@@ -298,11 +297,10 @@ def dense_modes(comm, system, kind, k, window, tol, want_vectors):
 def _dense_on_rank0(system, kind, k, window, tol, want_vectors):
     H = dense_matrix(system, kind)
     norm = float(np.abs(H).sum(axis=1).max())
-    Q = deflation_basis(system.n, system.d)
-    Hd = Q.T @ H @ Q
+    Hd = deflated_dense(H, system.n, system.d, norm)
     interval = window_interval(window, norm) if window is not None else None
     n_unstable = count_below_dense(Hd, -ZERO_TOL * norm)
-    lam, V = dense_eigh(H, Q, k=k, interval=interval, vectors=True)
+    lam, V = dense_eigh(Hd, k=k, interval=interval, vectors=True)
     if window is not None and len(lam) == 0:
         raise ParjamError(f"frequency window [{window[0]}, {window[1]}] holds no eigenvalue")
     err = np.linalg.norm(H @ V - V * lam, axis=0) / norm
@@ -318,7 +316,8 @@ def _dense_on_rank0(system, kind, k, window, tol, want_vectors):
         interval=tuple(interval) if interval else (float("nan"),) * 2, n_unstable=n_unstable,
         rejected_eigenvalue=lam[~ok], rejected_error=err[~ok],
         vectors=vec3[ok] if want_vectors else None,
-        info={"solver": "scipy.linalg.eigh of Q^T D Q (Q: complement of the translations)",
+        info={"solver": "scipy.linalg.eigh of D + 2 ||D||_inf T T^T (translations T moved above "
+                        "the spectrum)",
               "inertia": f"{n_unstable} eigenvalues below -zero_tol (LDL^T)"})
 
 
