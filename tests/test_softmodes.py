@@ -19,7 +19,7 @@ REF = {r["file"]: r for r in json.load(open(os.path.join(DATA, "reference.json")
 ISO = ["ref_d3_mono_N128_dphi1e-06.h5", "ref_d2_bi_N128_dphi1e-06.h5"]
 HYPER = ["ref_d3_mono_N128_dphi1e-03.h5", "ref_d2_bi_N128_dphi1e-03.h5"]
 CUTS = {"one": ["x=0.5"], "two axes": ["x=0.5", "y=0.25"], "wrap": ["x=0"],
-        "parallel": ["x=0.2", "x=0.7"]}
+        "parallel": ["x=0.2", "x=0.7"], "sub-boxes": ("subdivide", 2)}
 
 
 @pytest.fixture(scope="session")
@@ -46,6 +46,8 @@ def tmpdir_all():
 
 
 def planes(pack, texts):
+    if texts[0] == "subdivide":
+        return sm.subdivision_planes(texts[1], pack.d)
     return [sm.parse_cut(t, pack.d) for t in texts]
 
 
