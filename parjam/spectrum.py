@@ -181,18 +181,23 @@ def choose_method(method, dof, window):
 
 
 def window_interval(window, norm):
-    """lambda interval of a frequency window [wa, wb], its lower end lifted above the zero cluster
-    (spectrum slicing cannot start on the d translations)."""
+    """lambda interval of a frequency window [wa, wb] (negative omega: negative lambda), an end
+    inside the zero cluster moved just outside it (slicing cannot start on the translations)."""
     wa, wb = window
     if not (np.isfinite(wa) and np.isfinite(wb)) or wb <= wa:
         raise ParjamError(f"empty frequency window [{wa}, {wb}]: need WA < WB")
     la, lb = np.sign(wa) * wa * wa, np.sign(wb) * wb * wb
     tol = ZERO_TOL * norm
-    if lb <= tol:
-        raise ParjamError(f"frequency window [{wa}, {wb}] holds no nonzero mode: it must reach "
-                          f"above the zero cluster (omega > {np.sqrt(tol):.2e})")
-    if abs(la) < tol or (la < 0 < lb):
+    if la >= -tol and lb <= tol:
+        raise ParjamError(f"frequency window [{wa}, {wb}] holds no nonzero mode: it lies in the "
+                          f"zero cluster |omega| < {np.sqrt(tol):.2e}")
+    if la < -tol and lb > tol:
+        raise ParjamError(f"frequency window [{wa}, {wb}] spans the d translations at zero: "
+                          f"ask for [{wa}, 0] and [0, {wb}] separately")
+    if abs(la) <= tol:
         la = tol
+    if abs(lb) <= tol:
+        lb = -tol
     return la, lb
 
 

@@ -254,6 +254,8 @@ def test_bad_requests(jammed):
         spectrum.compute(WORLD, s, "full", window=(0.5, 0.2))
     with pytest.raises(ParjamError, match="no nonzero mode"):
         spectrum.compute(WORLD, s, "full", window=(0.0, 1e-9), method="slice")
+    with pytest.raises(ParjamError, match="spans the d translations"):
+        spectrum.compute(WORLD, s, "full", window=(-0.1, 0.1), method="slice")
     with pytest.raises(ParjamError, match="holds no eigenvalue"):
         spectrum.compute(WORLD, s, "full", window=(1e-3, 2e-3), method="slice")
     with pytest.raises(ParjamError, match="holds no eigenvalue"):
@@ -270,6 +272,21 @@ def test_unjammed_and_contactless_packings():
     assert len(network.find_contacts(apart)) == 0
     with pytest.raises(ParjamError, match="no contacts"):
         spectrum.active_system(apart)
+
+
+def test_stress_term_alone_is_negative_semidefinite(jammed):
+    """M' has only eigenvalues <= 0: a window on the negative side finds them all, and the
+    sinvert modes nearest zero are all negative; no instability is claimed for M'."""
+    s = jammed
+    eigs = np.linalg.eigvalsh(spectrum.dense_matrix(s, "stress"))
+    norm = np.abs(spectrum.dense_matrix(s, "stress")).sum(axis=1).max()
+    assert eigs.max() <= 1e-12 * norm
+    neg = eigs[eigs < -1e-6]  # the 12 negative eigenvalues nearest zero
+    wa = -np.sqrt(-0.5 * (neg[-13] + neg[-12]))
+    spec = spectrum.compute(WORLD, s, "stress", window=(wa, -1e-3), method="slice")
+    expect = neg[-12:]
+    assert len(spec.eigenvalue) == len(expect) and np.allclose(spec.eigenvalue, expect, rtol=1e-7)
+    assert not spec.unstable
 
 
 def test_auto_method_choice():
