@@ -32,6 +32,7 @@ from parjam.errors import ParjamError, UnjammedError
 METHODS = ("auto", "dense", "sinvert", "slice")
 MATRICES = hessian.KINDS
 DENSE_MAX_DOF = 3000  # auto: dense LAPACK up to this many degrees of freedom d N'
+DENSE_LIMIT_DOF = 20000  # --method dense refused above (a 20000^2 matrix is 3.2 GB)
 ZERO_TOL = 1e-9  # |lambda| / ||D||_inf below which an eigenvalue belongs to the zero cluster
 PREFIX = "modes_"
 
@@ -225,6 +226,9 @@ def compute(comm, system, kind="full", k=None, window=None, method="auto", tol=1
     method = choose_method(method, system.dof, window)
     if method == "slice" and window is None:
         raise ParjamError("--method slice needs --window WA,WB")
+    if method == "dense" and system.dof > DENSE_LIMIT_DOF:
+        raise ParjamError(f"--method dense refused for {system.dof} degrees of freedom (limit "
+                          f"{DENSE_LIMIT_DOF}): use sinvert or slice")
     t0 = time.perf_counter()
     if method == "dense":
         spec = dense_modes(comm, system, kind, k, window, tol, vectors)
