@@ -127,9 +127,17 @@ class Jammer:
             else:
                 hi = phi
                 guess = self._predict_phi(res.energy)
+                if 0.0 < guess <= lo:
+                    # this configuration jams below the old lower bound, which was found with an
+                    # earlier configuration (the state changes along the search): drop it
+                    lo = 0.0
                 phi = guess if lo < guess < hi else 0.5 * (lo + hi)
-            if hi - lo < 1e-15 * hi:
-                break
+            if hi - lo < 1e-13 * hi:
+                # the bracket closed without a state in the window: its ends come from different
+                # configurations (the state evolves along the search), so keep only the current
+                # end and restart small steps from it
+                lo, hi, step = (0.0, hi, step) if e > s.e_high else (lo, np.inf, 1e-9 * phi)
+                phi = hi * (1.0 - 1e-9) if e > s.e_high else lo + step
         raise ParjamError(f"phi_c bisection did not land in the energy window after "
                           f"{s.max_iter} steps (bracket {lo:.14f}..{hi:.14f})", collective=False)
 

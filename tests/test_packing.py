@@ -1,0 +1,137 @@
+"""Jammed packings: force balance, isostaticity at phi_c, the scaling laws p ~ dphi and
+dZ ~ dphi^(1/2) (O'Hern et al. 2003), the phi_c values, pressure targets and determinism.
+
+The ensembles are made once per session through the real command (``parjam pack``), with the
+members spread over the ranks of the MPI pass.
+"""
+
+import glob
+import os
+
+import h5py
+import numpy as np
+import pytest
+
+from parjam import cli, env
+from parjam.io import read_packing
+from parjam.network import analyze
+
+MEMBERS = 10
+DPHIS_3D = [1e-8, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1]
+DPHIS_2D = [1e-8, 1e-6, 1e-1]
+
+
+def _make(tmp, name, argv):
+    out = os.path.join(tmp, name)
+    assert cli.main(["pack", *argv, "--members", str(MEMBERS), "--out", out, "-q"]) == 0
+    states = {}
+    for path in sorted(glob.glob(os.path.join(out, "*.h5"))):
+        with h5py.File(path, "r") as f:
+            params = dict(f["parameters"].attrs)
+        net = analyze(read_packing(path))
+        states.setdefault(str(params["state"]), []).append((params, net))
+    return states
+
+
+@pytest.fixture(scope="session")
+def ensemble3d(shared_tmp):
+    return _make(shared_tmp, "e3d", ["--dim", "3", "--n", "256", "--seed", "11",
+                                     "--dphi", *map(str, DPHIS_3D)])
+
+
+@pytest.fixture(scope="session")
+def ensemble2d(shared_tmp):
+    return _make(shared_tmp, "e2d", ["--dim", "2", "--n", "256", "--dispersity", "bi",
+                                     "--seed", "12", "--dphi", *map(str, DPHIS_2D)])
+
+
+def _label(dphi):
+    return f"dphi{dphi:.1e}"
+
+
+@pytest.mark.parametrize("which", ["ensemble3d", "ensemble2d"])
+def test_force_balance_at_extremes(which, request):
+    ens = request.getfixturevalue(which)
+    for label in ("phi_c", _label(1e-8), _label(1e-1)):
+        assert len(ens[label]) == MEMBERS
+        for params, net in ens[label]:
+            assert net.max_force <= 1e-13, (label, params["member"], net.max_force)
+            assert params["minimiser_status"] == "converged"
+
+
+@pytest.mark.parametrize("which", ["ensemble3d", "ensemble2d"])
+def test_isostatic_at_jamming(which, request):
+    ens = request.getfixturevalue(which)
+    excess = np.array([net.excess for _, net in ens["phi_c"]])
+    assert np.all(excess >= 0), excess  # a jammed packing is never hypostatic
+    assert np.mean(excess == 0) >= 0.9, excess
+    near = np.array([net.excess for _, net in ens[_label(1e-6)]])
+    assert np.all((near >= 0) & (near <= 4)), near
+
+
+def _slope(x, y):
+    return np.polyfit(np.log(x), np.log(y), 1)[0]
+
+
+def test_pressure_linear_in_dphi(ensemble3d):
+    dphis = [d for d in DPHIS_3D if 1e-6 <= d <= 1e-2]
+    p = [np.mean([net.pressure for _, net in ensemble3d[_label(d)]]) for d in dphis]
+    assert _slope(dphis, p) == pytest.approx(1.0, abs=0.1)
+
+
+def test_excess_coordination_sqrt_dphi(ensemble3d):
+    dphis = [d for d in DPHIS_3D if 1e-4 <= d <= 1e-1]
+    dz = [np.mean([2.0 * net.excess / net.n_active for _, net in ensemble3d[_label(d)]])
+          for d in dphis]
+    assert 0.4 <= _slope(dphis, dz) <= 0.65, dz
+
+
+def test_phi_c_values(ensemble3d, ensemble2d):
+    phi3 = np.mean([p["phi_c"] for p, _ in ensemble3d["phi_c"]])
+    phi2 = np.mean([p["phi_c"] for p, _ in ensemble2d["phi_c"]])
+    assert 0.63 <= phi3 <= 0.65
+    assert 0.83 <= phi2 <= 0.85
+
+
+def test_states_record_protocol(ensemble3d):
+    params, net = ensemble3d[_label(1e-2)][0]
+    assert params["protocol"] == "ohern-bisection+ladder"
+    assert params["ladder"] == "compress"
+    assert params["phi"] == pytest.approx(params["phi_c"] + 1e-2, abs=1e-12)
+    lo, hi = params["energy_window"]
+    for p, n in ensemble3d["phi_c"]:
+        e = n.energy / n.n
+        assert lo <= e <= hi
+
+
+def test_decompression_ladder_and_pressure_targets(shared_tmp):
+    out = os.path.join(shared_tmp, "dec")
+    assert cli.main(["pack", "--dim", "2", "--n", "64", "--dispersity", "bi", "--seed", "3",
+                     "--dphi", "1e-3", "1e-5", "--ladder", "decompress", "--out", out,
+                     "-q"]) == 0
+    with h5py.File(os.path.join(out, "member0000_dphi1.0e-05.h5")) as f:
+        assert f["parameters"].attrs["ladder"] == "decompress"
+        assert f["observables/max_force"][()] <= 1e-13
+    outp = os.path.join(shared_tmp, "press")
+    assert cli.main(["pack", "--dim", "3", "--n", "64", "--seed", "3", "--pressure", "1e-3",
+                     "1e-5", "--alpha", "2.5", "--out", outp, "-q"]) == 0
+    for p in (1e-3, 1e-5):
+        net = analyze(read_packing(os.path.join(outp, f"member0000_p{p:.1e}.h5")))
+        assert net.pressure == pytest.approx(p, rel=1e-6)
+        assert net.max_force <= 1e-13
+
+
+def test_distributed_minimisation_matches_serial(world):
+    """One packing minimised across all ranks equals the serial one to round-off."""
+    from parjam.packing import make_jammed
+
+    PETSc = env.petsc()
+    phi_s, (p_s,) = make_jammed(3, 128, [1e-4], seed=5, comm=PETSc.COMM_SELF)
+    phi_w, (p_w,) = make_jammed(3, 128, [1e-4], seed=5, comm=world)
+    assert phi_w == pytest.approx(phi_s, abs=1e-12)
+    d = p_w.pos - p_s.pos
+    d -= p_s.L * np.rint(d / p_s.L)
+    assert np.abs(d).max() < 1e-9
+    n_s, n_w = analyze(p_s), analyze(p_w)
+    assert n_s.n_contacts == n_w.n_contacts
+    assert n_w.pressure == pytest.approx(n_s.pressure, rel=1e-8)
