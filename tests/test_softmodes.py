@@ -392,3 +392,23 @@ def test_cli_bad_input_gives_one_line_and_no_file(comm, tmpdir_all, capsys, case
     if comm.getRank() == 0:
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert len(lines) == 1 and lines[0].startswith("parjam: error:") and expect in lines[0]
+
+
+# --------------------------------------------------------------------------- figures
+
+def test_figures_segment_cut_count_and_files(comm, packs, tmpdir_all):
+    """Fig. "softfig" cuts only ncut contacts along the line: the null space is d + ncut - 1
+    (the dense SVD agrees); both PNGs are written (rank 0)."""
+    from parjam.plot import softmodes as psm
+
+    pack = packs[ISO[1]]
+    cs = psm.segment_cut(sm.prepare(pack, [sm.Plane(0, 0.5)]), sm.Plane(0, 0.5), 5)
+    assert cs.q == 5
+    assert sm.dense_null_space(sm.dense_rigidity(cs, cs.kept))[0] == cs.d + 4
+    if comm.getRank() == 0:
+        out = os.path.join(tmpdir_all, "softfig.png")
+        info = psm.softfig(pack, out, ncut=5)
+        assert info["count"] == cs.d + 4 and 0.0 < info["extension"] < 1.0
+        psm.figs(pack, os.path.join(tmpdir_all, "figs.png"))
+        assert os.path.getsize(out) > 1000
+        assert os.path.getsize(os.path.join(tmpdir_all, "figs.png")) > 1000
