@@ -71,7 +71,7 @@ def parse_cut(text, d):
 
 
 def subdivision_planes(m, d):
-    """The planes x_a = k L / m (k = 0..m-1) in every direction: the m^d sub-boxes of Section III."""
+    """The planes x_a = k L / m (k = 0..m-1) in every direction: the m^d sub-boxes (Sec. III)."""
     if m < 1:
         raise ParjamError(f"--subdivide must be >= 1, got {m}")
     return [Plane(a, k / m) for a in range(d) for k in range(m)]

@@ -114,6 +114,18 @@ def run_dense(path, basis_file):
     return dict(json.loads(line[6:]), wall=wall)
 
 
+def dense_cells(r, dn):
+    """The baseline's four columns, on the 1-rank row of each size."""
+    if r["ranks"] != 1:
+        return " | | | "
+    if dn is None:
+        gb = 8 * (3 * r["N_active"]) ** 2 / 2**30
+        return f"not run (S alone: {gb:.0f} GB dense) | | | "
+    ratio = dn["seconds"] / (r["t_count"] + r["t_null"])
+    return (f"{dn['seconds']:.1f} | {dn['peak_mb']:.0f} | {ratio:.1f}x | "
+            f"{dn.get('min_cosine', float('nan')):.12f}")
+
+
 def markdown(rows, dense, host):
     lines = [
         "# Benchmark: `parjam softmodes` (3D, one cut at x = L/2)",
@@ -136,19 +148,11 @@ def markdown(rows, dense, host):
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        dn = dense.get(r["n"])
-        one = next((x for x in rows if x["n"] == r["n"] and x["ranks"] == 1), None)
-        ratio = (f"{dn['seconds'] / (one['t_count'] + one['t_null']):.1f}x"
-                 if dn and one and r["ranks"] == 1 else "")
         lines.append(
             f"| {r['n']} | {r['N_active']} | {r['q']} | {r['count']} ({r['expected']}) | "
             f"{r['ranks']} | {r['wall']:.1f} | {r['t_count']:.2f} | {r['t_null']:.1f} | "
             f"{r['t_analysis']:.2f} | {r['iterations']} | {r['rss']:.0f} | {r['eq3']:.1e} | "
-            + (f"{dn['seconds']:.1f} | {dn['peak_mb']:.0f} | {ratio} | "
-               f"{dn.get('min_cosine', float('nan')):.12f} |" if dn and r["ranks"] == 1 else
-               ("not run (dense S alone needs "
-                f"{8 * (3 * r['N_active']) ** 2 / 2**30:.0f} GB) | | | |" if not dn and r["ranks"] == 1
-                else " | | | |")))
+            + dense_cells(r, dense.get(r["n"])) + " |")
     lines += ["", "## Physics of the same runs (1 rank)", "",
               "| N | L-scaled f minimum c (all / without localised) | localised | "
               "q'/q at e0 = 0.05, 0.1, 0.2, 0.3, 0.4 | omega_t^2 | omega_t^2 N^(2/3) | max trial "

@@ -133,8 +133,8 @@ def print_summary(res, out):
         f"{2 * s['omega_t2']:.3e} (need >= q'/2 = {s['q_prime'] / 2:g}): "
         f"{'ok' if s['variational_ok'] else 'VIOLATED'}",
         f"time / memory     count {res.solver['seconds_count']:.2f} s, null space "
-        f"{res.solver['seconds_null_space']:.2f} s, analysis {res.solver['seconds_analysis']:.2f} s;"
-        f" peak {res.solver['peak_rss_mb']:.0f} MB per rank",
+        f"{res.solver['seconds_null_space']:.2f} s, analysis "
+        f"{res.solver['seconds_analysis']:.2f} s; peak {res.solver['peak_rss_mb']:.0f} MB per rank",
         f"written           {out}",
     ]
     print("\n".join(lines), flush=True)
