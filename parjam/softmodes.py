@@ -339,7 +339,7 @@ def null_basis(comm, M, d, n_soft, scale, prefix="soft_", margin=4, tol=1e-12):
     (``-soft_eps_*``, ``-soft_st_*``) override the defaults.
     """
     PETSc, SLEPc = env.petsc(), env.slepc()
-    nev = n_soft + margin
+    nev = n_soft + max(0, min(margin, M.getSize()[0] - d - n_soft))  # room left for the gap
     eps = SLEPc.EPS().create(comm=comm)
     try:
         try:
