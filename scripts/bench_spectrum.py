@@ -118,7 +118,16 @@ def scipy_hessian(system):
     return H
 
 
+def cap_memory(gb):
+    """Address-space cap for a baseline worker: a MemoryError instead of the machine's OOM killer
+    (the machine is shared)."""
+    if gb:
+        lim = int(gb * 1024**3)
+        resource.setrlimit(resource.RLIMIT_AS, (lim, lim))
+
+
 def worker_scipy(args):
+    cap_memory(args.mem_limit_gb)
     import scipy.sparse as sp
     import scipy.sparse.linalg as sla
 
@@ -149,6 +158,7 @@ def worker_scipy(args):
 
 
 def worker_dense(args):
+    cap_memory(args.mem_limit_gb)
     from parjam import spectrum
 
     system, t_load = load_system(args.file)
@@ -195,17 +205,19 @@ def bench_lowest(path, args):
     for r in args.ranks:
         out["runs"].append(run_worker("parjam", path, r, k, args.petsc, args.timeout))
     system_dof = out["runs"][0].get("dof", 0)
+    cap = ["--mem-limit-gb", str(args.mem_limit_gb)]
     if system_dof // 3 <= args.scipy_max:
         fill = ["--fill"] if system_dof // 3 <= args.fill_max else []
-        out["runs"].append(run_worker("scipy", path, 1, ["--k", str(args.k)] + fill,
+        out["runs"].append(run_worker("scipy", path, 1, ["--k", str(args.k)] + fill + cap,
                                       timeout=args.timeout))
     if system_dof // 3 <= args.dense_max:
-        out["runs"].append(run_worker("dense", path, 1, timeout=args.timeout))
+        out["runs"].append(run_worker("dense", path, 1, cap, timeout=args.timeout))
     return out
 
 
 def bench_slice(path, args):
-    dense = run_worker("dense", path, 1, timeout=args.timeout)
+    dense = run_worker("dense", path, 1, ["--mem-limit-gb", str(args.mem_limit_gb)],
+                       timeout=args.timeout)
     out = {"file": path, "dense": dense, "runs": []}
     if "failed" in dense:
         return out
@@ -314,6 +326,8 @@ def main():
     p.add_argument("--fill-max", type=int, default=10000, help="largest N for SuperLU alone")
     p.add_argument("--dense-max", type=int, default=4096)
     p.add_argument("--timeout", type=float, default=3600)
+    p.add_argument("--mem-limit-gb", type=float, default=10.0,
+                   help="address-space cap of the scipy and dense workers")
     p.add_argument("--out", default="docs/bench-spectra.md")
     p.add_argument("--json", default="bench-out/bench-spectra.json")
     args, petsc = p.parse_known_args()
