@@ -249,18 +249,20 @@ def markdown(lowest, slices, args):
              "||Hv - lambda v|| / ||H||_inf; 'limit' = one factorisation (symbolic + numeric) + "
              "2k MatSolve at the measured cost per solve; 'solve/limit' = EPSSolve / limit.", ""]
     head = ("| N' | dof | method | ranks | time (s) | speed-up vs scipy | max residual | "
-            "max rel. diff vs scipy | peak MB (max rank / sum) | factor fill | ordering | "
+            "max rel. diff vs scipy | vs dense | peak MB (max rank / sum) | factor fill | ordering | "
             "MatSolve calls | solve/limit |")
     lines += [head, "|" + "---|" * (head.count("|") - 1)]
     for case in lowest:
         runs = case["runs"]
         scipy_run = next((r for r in runs if r.get("method") == "scipy-eigsh"
                           and "failed" not in r), None)
+        dense_run = next((r for r in runs if r.get("method") == "numpy-eigvalsh"
+                          and "failed" not in r), None)
         for r in runs:
-            lines.append(row(r, scipy_run, args.k))
+            lines.append(row(r, scipy_run, dense_run, args.k))
         if scipy_run and "superlu_fill" in scipy_run:
             lines.append(f"|  | {scipy_run['dof']} | scipy SuperLU factor alone | 1 | "
-                         f"{scipy_run['superlu_seconds']:.3g} |  |  |  |  | "
+                         f"{scipy_run['superlu_seconds']:.3g} |  |  |  |  |  | "
                          f"{scipy_run['superlu_fill'] / 1e6:.1f} M |  |  |  |")
     lines += ["", "## Spectrum slicing against dense", ""]
     for case in slices:
@@ -289,11 +291,14 @@ def markdown(lowest, slices, args):
     return "\n".join(lines) + "\n"
 
 
-def row(r, scipy_run, k):
+def row(r, scipy_run, dense_run, k):
     if "failed" in r:
-        return f"| | | {r['method']} | {r['ranks']} | failed: {r['failed']} |" + " |" * 9
+        return f"| | | {r['method']} | {r['ranks']} | failed: {r['failed']} |" + " |" * 10
     speed = scipy_run["wall"] / r["wall"] if scipy_run else None
     diff = compare(r, scipy_run) if scipy_run and r is not scipy_run else None
+    ddiff = None
+    if dense_run and r is not dense_run:
+        ddiff = compare(r, {"eigenvalues": dense_run["eigenvalues"][:len(r["eigenvalues"])]})
     fill = ordering = calls = ratio = None
     if r["method"].startswith("parjam"):
         info, ev = r["info"], r["events"]
@@ -306,7 +311,7 @@ def row(r, scipy_run, k):
     mem = f"{r['peak_mb_max']:.0f}" + (f" / {r['peak_mb_sum']:.0f}" if "peak_mb_sum" in r else "")
     return (f"| {r.get('n_active', r['dof'] // 3)} | {r['dof']} | {r['method']} | {r['ranks']} | "
             f"{r['wall']:.3g} | {fmt(speed, '.2f')} | {fmt(r.get('max_error'), '.1e')} | "
-            f"{fmt(diff, '.1e')} | {mem} | {fmt(fill, '.1f')}{' M' if fill else ''} | "
+            f"{fmt(diff, '.1e')} | {fmt(ddiff, '.1e')} | {mem} | {fmt(fill, '.1f')}{' M' if fill else ''} | "
             f"{ordering or '-'} | {fmt(calls, 'd')} | {fmt(ratio, '.2f')} |")
 
 
