@@ -588,18 +588,25 @@ def trial_modes(V, g, e, floor=1e-12):
     return np.repeat(g, d)[:, None] * V * C[None, :]
 
 
-def energies(comm, M, T, projected=False):
-    """<dR*|M|dR*> per column of T (local rows); with ``projected`` also T^T M T."""
+def energies(comm, M, T, projected=False, weight=None):
+    """<t|M|t> per column t of T (local rows), or of weight * T without storing that product;
+    with ``projected`` also T^T M T."""
     x, y = M.createVecs()
-    MT = np.empty_like(T)
+    MT = np.empty_like(T) if projected else None
+    E = np.empty(T.shape[1])
     for b in range(T.shape[1]):
-        x.setArray(T[:, b])
+        t = T[:, b] if weight is None else weight * T[:, b]
+        x.setArray(t)
         M.mult(x, y)
-        MT[:, b] = y.getArray()
+        E[b] = t @ y.getArray()
+        if projected:
+            MT[:, b] = y.getArray()
     x.destroy()
     y.destroy()
-    E = allreduce(comm, (T * MT).sum(axis=0))
-    return (E, gram(comm, T, MT)) if projected else E
+    E = allreduce(comm, E)
+    if not projected:
+        return E
+    return E, gram(comm, T if weight is None else weight[:, None] * T, MT)
 
 
 def variational_count(comm, M_uncut, omega_t2):
@@ -743,7 +750,7 @@ def _characterise(comm, cs, nb, count, e0, nbins):
     centres, f = overlap_function(comm, V, u, nbins)
     _, f_nt = overlap_function(comm, without_localised(comm, cs, V, nb.lo, nb.hi), u, nbins)
     Mu = relaxed_matrix(comm, cs, cs.contacts)
-    Eg = energies(comm, Mu, np.repeat(g, cs.d)[:, None] * V)  # <g dR|M|g dR>
+    Eg = energies(comm, Mu, V, weight=np.repeat(g, cs.d))  # <g dR|M|g dR>
     E = np.where(e > 1e-12, Eg / np.maximum(e, 1e-12), np.nan)  # Eq. (rr), C_b = e_b^-1/2
     grad2 = gradient_bound(cs.L, cs.planes)
     ext = e > e0
