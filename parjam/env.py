@@ -6,6 +6,7 @@ command-line argument that starts with ``-`` after parjam's own options reaches 
 database, so ``-log_view``, ``-eps_*``, ``-st_*`` and ``-ksp_*`` configure the solvers.
 """
 
+import functools
 import os
 import sys
 
@@ -71,6 +72,7 @@ def mpi_comm():
     return MPI.COMM_WORLD
 
 
+@functools.lru_cache(maxsize=None)
 def has_mumps():
     """Whether the PETSc build offers MUMPS as a factorisation package."""
     PETSc = init()

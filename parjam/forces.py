@@ -9,7 +9,7 @@ the number of ranks.  Scalars (energy, max |F|) are reduced over the communicato
 
 import numpy as np
 
-from parjam import env, hessian, potential
+from parjam import env, hessian, kernels
 from parjam.system import min_image, neighbour_pairs, pair_geometry, wrap
 
 
@@ -32,6 +32,9 @@ class ForceField:
         self.set_box(L)
         self.n_force_calls = 0
         self.n_rebuilds = 0
+        self._hess = None  # Hessian kept between Newton steps (see hessian())
+        self._hess_pairs = None
+        self.newton_ksp = None  # its factorisation, kept by minimize.newton
 
     def set_box(self, L):
         self.L = float(L)
@@ -70,10 +73,12 @@ class ForceField:
             disp = min_image(pos - self.ref_pos, self.L)
             if np.max(np.einsum("ij,ij->i", disp, disp)) < (0.5 * self.skin) ** 2:
                 return
-        pairs = neighbour_pairs(pos, self.L, self.diam.max() + self.skin)
+        pairs = neighbour_pairs(wrap(pos, self.L), self.L, self.diam.max() + self.skin)
         i, j = pairs[:, 0], pairs[:, 1]
         mine = ((i >= self.lo) & (i < self.hi)) | ((j >= self.lo) & (j < self.hi))
         self.pairs = pairs[mine]
+        self.pairs_i = np.ascontiguousarray(self.pairs[:, 0])
+        self.pairs_j = np.ascontiguousarray(self.pairs[:, 1])
         self.ref_pos = pos.copy()
         self.n_rebuilds += 1
 
@@ -89,18 +94,9 @@ class ForceField:
         """Write the forces on owned particles into Vec f; return the total energy."""
         self.n_force_calls += 1
         pos = self.gather()
-        i, j, rij, r, sigma = self.contacts(pos)
-        dv = potential.dV(r, sigma, self.alpha, self.eps)
-        fj = -(dv / r)[:, None] * rij  # force on j from i; on i it is -fj
-        nloc = self.hi - self.lo
-        own_i = (i >= self.lo) & (i < self.hi)
-        own_j = (j >= self.lo) & (j < self.hi)
-        idx = np.concatenate([i[own_i], j[own_j]]) - self.lo
-        fl = self.local(f)
-        for a in range(self.d):
-            w = np.concatenate([-fj[own_i, a], fj[own_j, a]])
-            fl[:, a] = np.bincount(idx, weights=w, minlength=nloc)
-        e_local = potential.energy(r[own_i], sigma[own_i], self.alpha, self.eps).sum()
+        self._update_pairs(pos)
+        e_local = kernels.pair_forces(self.pairs_i, self.pairs_j, pos, self.diam, self.L,
+                                      self.alpha, self.eps, self.lo, self.hi, self.local(f))
         return self.mpi.allreduce(e_local)
 
     def max_norm(self, f):
@@ -110,13 +106,36 @@ class ForceField:
         return self.mpi.allreduce(m, op=_max())
 
     def hessian(self, shift=0.0, kind="full"):
-        """The distributed Hessian at the current positions (all particles, rattlers included)."""
+        """The distributed Hessian at the current positions (all particles, rattlers included).
+
+        Its pattern is the neighbour list (non-touching pairs hold zero blocks), so between
+        neighbour-list rebuilds the same Mat is refilled in place and a factorisation of it can
+        reuse its symbolic phase (ordering and analysis).
+        """
         pos = self.gather()
-        i, j, rij, r, sigma = self.contacts(pos)
-        blocks = hessian.contact_blocks(rij, r, sigma, self.alpha, self.eps, kind)
-        return hessian.assemble(self.comm, self.n, self.d, i, j, blocks, shift)
+        self._update_pairs(pos)
+        rij, r, sigma = pair_geometry(pos, self.L, self.diam, self.pairs)
+        touch = r < sigma
+        blocks = np.zeros((len(r), self.d, self.d))
+        blocks[touch] = hessian.contact_blocks(rij[touch], r[touch], sigma[touch], self.alpha,
+                                               self.eps, kind)
+        i, j = self.pairs[:, 0], self.pairs[:, 1]
+        if self._hess is not None and self._hess_pairs is self.pairs:
+            indptr, cols, vals = hessian.local_csr(self.comm, self.n, self.d, i, j, blocks, shift)
+            self._hess.setValuesCSR(indptr, cols, vals)
+            self._hess.assemble()
+        else:
+            if self._hess is not None:
+                self._hess.destroy()
+            self._hess = hessian.assemble(self.comm, self.n, self.d, i, j, blocks, shift)
+            self._hess_pairs = self.pairs
+        return self._hess
 
     def destroy(self):
+        if self._hess is not None:
+            self._hess.destroy()
+        if self.newton_ksp is not None:
+            self.newton_ksp.destroy()
         self.scatter.destroy()
         self.xall.destroy()
         self.x.destroy()

@@ -80,6 +80,17 @@ def PETSC_INT():
     return env.petsc().IntType
 
 
+def local_csr(comm, n, d, pi, pj, blocks, shift=0.0):
+    """Scalar CSR (indptr, global columns, values) of this rank's rows; ``shift`` is added to the
+    diagonal."""
+    lo, hi = row_range(n, comm)
+    brow, bcol, bvals = local_block_csr(n, lo, hi, np.asarray(pi), np.asarray(pj), blocks)
+    if shift:
+        diag = brow == bcol
+        bvals[diag] += shift * np.eye(d)
+    return scalar_csr(lo, hi, brow, bcol, bvals)
+
+
 def assemble(comm, n, d, pi, pj, blocks, shift=0.0):
     """Distributed MatAIJ (block size d) of n particles from contacts touching this rank's rows.
 
@@ -87,13 +98,8 @@ def assemble(comm, n, d, pi, pj, blocks, shift=0.0):
     (extra contacts are ignored), ``blocks`` their K_ij.  ``shift`` is added to the diagonal.
     """
     PETSc = env.petsc()
-    lo, hi = row_range(n, comm)
-    brow, bcol, bvals = local_block_csr(n, lo, hi, np.asarray(pi), np.asarray(pj), blocks)
-    if shift:
-        diag = brow == bcol
-        bvals[diag] += shift * np.eye(d)
-    indptr, cols, vals = scalar_csr(lo, hi, brow, bcol, bvals)
-    m = (hi - lo) * d
+    indptr, cols, vals = local_csr(comm, n, d, pi, pj, blocks, shift)
+    m = len(indptr) - 1
     A = PETSc.Mat().createAIJ(((m, n * d), (m, n * d)), bsize=d, csr=(indptr, cols, vals),
                               comm=comm)
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)

@@ -46,7 +46,6 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None):
     f = ff.vec()
     v = ff.vec()
     v.set(0.0)
-    x_old = ff.vec()
     energy = ff.evaluate(f)
     fmax = ff.max_norm(f)
     dt, a, n_pos = p.dt, p.a0, 0
@@ -75,32 +74,37 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None):
         v.axpy(dt, f)
         vn, fn = v.norm(), f.norm()
         if fn > 0.0:
-            v.scale(1.0 - a)
-            v.axpy(a * vn / fn, f)
-        ff.x.axpy(dt, v)
-        ff.wrap()
+            v.axpby(a * vn / fn, 1.0 - a, f)
+        ff.x.axpy(dt, v)  # positions are folded back into the box at the end
         energy = ff.evaluate(f)
         fmax = ff.max_norm(f)
         if progress is not None and step % 2000 == 0:
             progress(f"FIRE step {step}: E/N = {energy / ff.n:.3e}, max|F| = {fmax:.3e}")
-    for vec in (f, v, x_old):
+    ff.wrap()
+    for vec in (f, v):
         vec.destroy()
     return MinResult(status, energy, fmax, fire_steps=step)
 
 
 def _linear_solver(ff, H):
+    """KSP (preonly + Cholesky/LDL^T, MUMPS when available; options prefix ``newton_``) kept on
+    the force field, so that a refilled Hessian with the same pattern is refactorised
+    numerically only."""
     PETSc = env.petsc()
-    ksp = PETSc.KSP().create(comm=ff.comm)
-    ksp.setOptionsPrefix("newton_")
+    ksp = ff.newton_ksp
+    if ksp is None:
+        ksp = PETSc.KSP().create(comm=ff.comm)
+        ksp.setOptionsPrefix("newton_")
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("cholesky")
+        if env.has_mumps():
+            pc.setFactorSolverType("mumps")
+        elif ff.comm.getSize() == 1:
+            pc.setType("lu")
+        ksp.setFromOptions()
+        ff.newton_ksp = ksp
     ksp.setOperators(H)
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("cholesky")
-    if env.has_mumps():
-        pc.setFactorSolverType("mumps")
-    elif ff.comm.getSize() == 1:
-        pc.setType("lu")
-    ksp.setFromOptions()
     return ksp
 
 
@@ -127,13 +131,11 @@ def newton(ff, ftol, max_steps=60, progress=None):
         if fmax <= tight:
             status = "converged"
             break
-        mu = mu_scale * min(1e-2, max(fmax, 1e-15))
+        mu = mu_scale * min(1e-2, max(fmax, 1e-10))  # floor: rattler zero modes stay bounded
         H = ff.hessian(shift=mu)
         ksp = _linear_solver(ff, H)
         _remove_translations(ff, f)
         ksp.solve(f, dx)
-        ksp.destroy()
-        H.destroy()
         _remove_translations(ff, dx)
         ff.x.copy(x0)
         accepted = False

@@ -44,3 +44,22 @@ def test_distributed_forces_equal_serial_bitwise(world, d):
     np.testing.assert_allclose(f1, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
     # Newton's third law: the total force vanishes
     assert np.abs(f1.sum(axis=0)).max() < 1e-12 * np.abs(f1).max()
+
+
+@pytest.mark.parametrize("alpha", [2.0, 2.5])
+def test_compiled_kernel_matches_numpy(alpha):
+    from parjam import kernels
+
+    if kernels.library() is None:
+        pytest.fail("the compiled force kernel did not build (a C compiler is part of the setup)")
+    pack = random_packing(3, 400, 0.7, alpha, "poly", 1.3, np.random.default_rng(8))
+    from parjam.system import neighbour_pairs
+
+    pairs = neighbour_pairs(pack.pos, pack.L, pack.diam.max() * 1.2)
+    pi, pj = np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1])
+    out_c, out_n = np.zeros((150, 3)), np.zeros((150, 3))
+    e_c = kernels.pair_forces(pi, pj, pack.pos, pack.diam, pack.L, alpha, 1.0, 100, 250, out_c)
+    e_n = kernels._pair_forces_numpy(pi, pj, pack.pos, pack.diam, pack.L, alpha, 1.0, 100, 250,
+                                     out_n)
+    np.testing.assert_allclose(out_c, out_n, rtol=1e-12, atol=1e-15 * np.abs(out_n).max())
+    assert e_c == pytest.approx(e_n, rel=1e-12)
