@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import minimize
+from parjam import env, minimize
 from parjam.errors import ParjamError, UnjammedError
 from parjam.forces import ForceField
 from parjam.system import Packing, sphere_volume
@@ -44,6 +44,25 @@ def random_packing(d, n, phi, alpha=2.0, dispersity="mono", ratio=1.4, rng=None)
     pos = rng.uniform(0.0, L, size=(n, d))
     pos[pos >= L] = 0.0
     return Packing(pos, diam, L, alpha, meta={"species": species})
+
+
+class log_stage:
+    """A PETSc log stage (shown by -log_view) around a phase of the work."""
+
+    _stages = {}
+
+    def __init__(self, name):
+        PETSc = env.petsc()
+        if name not in self._stages:
+            self._stages[name] = PETSc.Log.Stage(name)
+        self.stage = self._stages[name]
+
+    def __enter__(self):
+        self.stage.push()
+
+    def __exit__(self, *exc):
+        self.stage.pop()
+        return False
 
 
 @dataclass
@@ -105,6 +124,10 @@ class Jammer:
 
     def find_phi_c(self):
         """O'Hern bisection: returns the State whose E/N lies in [e_low, e_high]."""
+        with log_stage("pack: phi_c bisection"):
+            return self._find_phi_c()
+
+    def _find_phi_c(self):
         s = self.settings
         n = self.pack.n
         lo, hi = 0.0, np.inf
@@ -166,6 +189,10 @@ class Jammer:
 
     def ladder(self, phi_c, dphis, direction="compress"):
         """States at phi_c + dphi, compressing upwards or decompressing from the largest."""
+        with log_stage("pack: dphi ladder"):
+            return self._ladder(phi_c, dphis, direction)
+
+    def _ladder(self, phi_c, dphis, direction):
         order = sorted(dphis) if direction == "compress" else sorted(dphis, reverse=True)
         out = []
         for k, dphi in enumerate(order):
@@ -178,6 +205,10 @@ class Jammer:
     def at_pressure(self, p_target, phi_c):
         """Volume fraction where the minimised pressure equals p_target (relative ptol):
         secant iterations on p^(1/(alpha-1)), which is linear in phi near jamming."""
+        with log_stage("pack: target pressure"):
+            return self._at_pressure(p_target, phi_c)
+
+    def _at_pressure(self, p_target, phi_c):
         s = self.settings
         expo = 1.0 / (self.pack.alpha - 1.0)
         g_t = p_target**expo
