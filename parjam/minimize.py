@@ -126,6 +126,7 @@ def newton(ff, ftol, max_steps=60, progress=None):
     status = "not converged"
     step = 0
     mu_scale = 1.0
+    failures = 0
     tight = 0.1 * ftol  # aim below the tolerance; stop at ftol only when progress stalls
     for step in range(1, max_steps + 1):
         if fmax <= tight:
@@ -155,7 +156,8 @@ def newton(ff, ftol, max_steps=60, progress=None):
             x0.copy(ff.x)
             ff.wrap()
             mu_scale *= 100.0
-            if mu_scale > 1e12 or fmax <= ftol:
+            failures += 1
+            if mu_scale > 1e12 or (fmax <= ftol and failures >= 3):
                 break
             continue
         mu_scale = max(1.0, mu_scale / 10.0)
@@ -172,16 +174,15 @@ def newton(ff, ftol, max_steps=60, progress=None):
 
 
 def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_params=None):
-    """FIRE until max|F| < fire_rel * (mean |F|-scale of the contacts), then Newton to ftol.
+    """FIRE until max|F| < fire_rel * (mean contact force), then Newton to ftol.
 
     Returns "unjammed" as soon as the energy drops below ``e_stop`` (useful in the phi_c
-    bisection: the energy only decreases during minimisation).
+    bisection: the energy only decreases during minimisation).  Where Newton stalls (a contact
+    network still rearranging, near jamming) FIRE takes over with a tighter tolerance, aiming a
+    decade below ftol so that the result does not sit on the edge of the tolerance.
     """
-    f = ff.vec()
-    energy = ff.evaluate(f)
-    ff_scale = _force_scale(ff)
-    f.destroy()
-    res = fire(ff, max(ftol, fire_rel * ff_scale), e_stop, fire_params, progress)
+    params = fire_params or FireParams()
+    res = fire(ff, max(ftol, fire_rel * _force_scale(ff)), e_stop, params, progress)
     if res.status == "unjammed" or res.fmax <= ftol:
         return res
     for attempt in range(3):
@@ -191,12 +192,13 @@ def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_
             if nres.energy < e_stop:
                 nres.status = "unjammed"
             return nres
-        # Newton stalled (e.g. a contact network still rearranging): more FIRE, tighter.
         fire_rel *= 1e-2
-        more = fire(ff, max(ftol, fire_rel * _force_scale(ff)), e_stop, fire_params, progress)
+        target = max(0.1 * ftol, fire_rel * _force_scale(ff))
+        more = fire(ff, target, e_stop, params, progress)
         res = MinResult(more.status, more.energy, more.fmax, res.fire_steps + more.fire_steps,
                         nres.newton_steps)
         if more.status == "unjammed" or more.fmax <= ftol:
+            res.status = "unjammed" if more.status == "unjammed" else "converged"
             return res
     return nres
 
