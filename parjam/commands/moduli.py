@@ -1,0 +1,62 @@
+"""``parjam moduli``: bulk and shear moduli and the stiffness tensor of a packing by linear
+response (affine Born term minus the non-affine relaxation Xi^T D^+ Xi; see parjam.moduli)."""
+
+import os
+
+from parjam.errors import ParjamError
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "moduli", help="elastic moduli B, G and the stiffness tensor by linear response",
+        description="Remove rattlers, assemble the dynamical matrix D of the non-rattlers, solve "
+        "D u = Xi for the force fields Xi of the d(d+1)/2 affine strains (PETSc KSP: CG with the "
+        "translations as null space, preconditioned by a Cholesky factorisation of D + tau I, "
+        "MUMPS when available; options -moduli_ksp_* -moduli_pc_*), and report the bulk modulus "
+        "B = -V dp/dV, the isotropic shear modulus G, the smallest shear modulus over all "
+        "directions (negative: unstable to some shear in the fixed box) and the residuals.")
+    p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
+    p.add_argument("--out", help="write /moduli/* (tensors, moduli, solver report) to this file")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(run=run)
+
+
+def run(args):
+    from parjam import env, io, moduli
+    from parjam.progress import Progress
+
+    PETSc = env.petsc()
+    comm = PETSc.COMM_WORLD
+    if args.out and os.path.abspath(args.out) == os.path.abspath(args.packing):
+        raise ParjamError("--out must differ from the input packing")
+    progress = Progress(comm, args.quiet, "moduli: ")
+    pack = io.read_packing(args.packing)
+    mod = moduli.compute(pack, comm, progress)
+    if args.out and comm.getRank() == 0:
+        prov = io.provenance(comm.getSize(), {
+            "command": "moduli", "input": os.path.abspath(args.packing),
+            "input_sha256": io.sha256(args.packing)})
+        moduli.write(args.out, mod, prov)
+    comm.tompi4py().Barrier()
+    if comm.getRank() == 0:
+        print_summary(mod, args.out)
+    return 0
+
+
+def print_summary(mod, out):
+    s = mod.summary()
+    unstable = s["G_min"] < 0.0
+    lines = [
+        f"N' / Nc           {s['N_active']} / {s['Nc']}",
+        f"pressure p        {s['pressure']:.6e}",
+        f"bulk modulus B    {s['B']:.6e}   (affine {s['B_affine']:.6e})",
+        f"shear modulus G   {s['G']:.6e}   (affine {s['G_affine']:.6e})",
+        f"G / B             {s['G_over_B']:.6e}",
+        f"softest shear     {s['G_min']:.6e}"
+        + ("   UNSTABLE to some shear in this fixed box" if unstable else ""),
+        f"solver            {mod.solver['ksp_type']}/{mod.solver['pc_type']}, iterations "
+        f"{' '.join(str(i) for i in s['iterations'])}, max residual {s['max_residual']:.1e}",
+    ]
+    if out:
+        lines.append(f"written           {out}")
+    print("\n".join(lines), flush=True)
