@@ -232,10 +232,10 @@ class ActiveNetwork:
 def active_network(pack):
     """Contacts among non-rattlers; raises ParjamError for an unjammed packing."""
     net = analyze(pack)
-    if net.n_active == 0 or net.excess < 1:
+    if net.n_active == 0 or net.excess < 0:
         raise ParjamError(
             f"packing is not jammed: {net.n_active} non-rattlers with {net.n_contacts} contacts, "
-            f"{net.excess:+d} from isostatic (need at least +1): no elastic moduli")
+            f"{net.excess:+d} from isostatic d(N'-1)+1: no elastic moduli")
     idx = np.cumsum(~net.rattler) - 1
     c = net.contacts
     blocks = hessian.contact_blocks(c.rij, c.r, c.sigma, pack.alpha, pack.eps, "full")
