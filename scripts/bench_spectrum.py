@@ -215,9 +215,12 @@ def bench_lowest(path, args):
     return out
 
 
-def bench_slice(path, args):
-    dense = run_worker("dense", path, 1, ["--mem-limit-gb", str(args.mem_limit_gb)],
-                       timeout=args.timeout)
+def bench_slice(path, args, lowest=()):
+    """Slicing against the dense spectrum (reused from the lowest-mode runs of the same file)."""
+    dense = next((r for case in lowest if case["file"] == path for r in case["runs"]
+                  if r.get("method") == "numpy-eigvalsh" and "failed" not in r), None)
+    dense = dense or run_worker("dense", path, 1, ["--mem-limit-gb", str(args.mem_limit_gb)],
+                                timeout=args.timeout)
     out = {"file": path, "dense": dense, "runs": []}
     if "failed" in dense:
         return out
@@ -344,7 +347,7 @@ def main():
     if args.worker == "dense":
         return worker_dense(args)
     lowest = [bench_lowest(f, args) for f in args.packings]
-    slices = [bench_slice(f, args) for f in args.slice]
+    slices = [bench_slice(f, args, lowest) for f in args.slice]
     os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
     with open(args.json, "w") as fh:
         json.dump({"lowest": lowest, "slices": slices}, fh, default=float)
