@@ -75,9 +75,9 @@ def pack_member(args, member, comm, progress):
             prov = io.provenance(comm.tompi4py().Get_size(), {"world_ranks": _world_size()})
             st.pack.meta.setdefault("species", st.pack.meta.get("species"))
             io.write_packing(path, st.pack, net, params, prov)
-        row = {"member": member, "state": st.label, "file": path, **net.summary(),
-               "phi_c": st.info.get("phi_c", np.nan)}
-        rows.append(row)
+        if comm.getRank() == 0:  # one row per state, however many ranks share the member
+            rows.append({"member": member, "state": st.label, "file": path, **net.summary(),
+                         "phi_c": st.info.get("phi_c", np.nan)})
     progress(f"done in {time.time() - t0:.1f} s ({totals['fire_steps']} FIRE steps, "
              f"{totals['newton_steps']} Newton steps)")
     return rows

@@ -19,6 +19,7 @@ from parjam.forces import ForceField
 from parjam.system import Packing, sphere_volume
 
 DISPERSITIES = ("mono", "bi", "poly")
+PHI_MAX = {2: 0.99, 3: 0.9}  # the phi_c search gives up above these (nothing jams so late)
 
 
 def diameters(n, dispersity="mono", ratio=1.4, rng=None):
@@ -108,7 +109,10 @@ class Jammer:
             self.pack = self.pack.rescaled(phi)
             self.ff.set_box(self.pack.L)
             self.ff.set_positions(self.pack.pos)
-        res = minimize.minimise(self.ff, self.settings.ftol, e_stop)
+        try:
+            res = minimize.minimise(self.ff, self.settings.ftol, e_stop)
+        except ValueError as exc:  # e.g. a box too small for the neighbour search
+            raise ParjamError(f"at phi = {self.pack.phi:.10f}: {exc}", collective=False) from None
         self.total_fire += res.fire_steps
         self.total_newton += res.newton_steps
         self.pack.pos = np.array(self.ff.gather())
@@ -146,7 +150,10 @@ class Jammer:
             if e < s.e_low:
                 lo = phi
                 phi = phi + step if np.isinf(hi) else 0.5 * (lo + hi)
-                step *= 2.0
+                step = min(2.0 * step, 0.02)
+                if phi > PHI_MAX[self.pack.d]:
+                    raise UnjammedError(f"no jammed state below phi = {PHI_MAX[self.pack.d]}: "
+                                        f"E/N = {e:.3e} at phi = {lo:.10f}", collective=False)
             else:
                 hi = phi
                 guess = self._predict_phi(res.energy)
