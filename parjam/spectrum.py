@@ -372,7 +372,9 @@ def sinvert_eps(A, k, target, abstol, deflation):
     eps.setOperators(A)
     eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
     eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
-    eps.setDimensions(nev=k)
+    # ncv = 1.5 k (SLEPc's default is 2 k): fewer solves in total at k = 100 (measured in
+    # docs/bench-spectra.md); -modes_eps_ncv overrides
+    eps.setDimensions(nev=k, ncv=k + max(k // 2, 20))
     eps.setTarget(target)
     eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
     eps.setConvergenceTest(SLEPc.EPS.Conv.ABS)
