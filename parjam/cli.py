@@ -73,6 +73,11 @@ def main(argv=None):
         return int(exc.code or 0)
     try:
         code = args.run(args)
+        # a command is collective: return only when every rank is done, so the files that rank 0
+        # wrote exist for whatever any rank does next (e.g. a script or test calling main twice)
+        from mpi4py import MPI
+
+        MPI.COMM_WORLD.Barrier()
         return int(code or 0)
     except ParjamError as exc:
         if rank == 0 or not exc.collective:
