@@ -83,6 +83,7 @@ def test_dos_ensemble_average(shared_dir):
         assert run_main(["modes", f"tests/data/{name}.h5", "--k", "372", "--method", "dense",
                          "--out", out, "-q"]) == 0
         outs.append(out)
+    MPI.Barrier()  # every rank reads the files rank 0 wrote
     ens = os.path.join(shared_dir, "ens.h5")
     assert run_main(["dos", *outs, "--bins", "20", "--out", ens]) == 0
     MPI.Barrier()
