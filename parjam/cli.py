@@ -38,10 +38,18 @@ def split_petsc_args(argv):
     return ours, petsc
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with a one-line error (``parjam: error: ...``) instead of usage + message; the
+    subcommand parsers inherit it."""
+
+    def error(self, message):
+        self.exit(2, f"parjam: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser():
     import parjam.commands as pkg
 
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="parjam",
         description="Parallel vibrational analysis of jammed soft-sphere packings "
         "(Wyart, Silbert, Nagel & Witten, PRE 72, 051306). Any PETSc/SLEPc option "
