@@ -119,37 +119,69 @@ def _write_contacts(f, pack, net):
     g["contacts"].attrs["particles_group"] = "/particles/all"
 
 
-def _dataset(f, name, path):
+MAX_PARTICLES = 50_000_000  # a file claiming more is refused before anything is read
+
+
+def _dataset(f, name, path, ndims, max_size=None):
+    """A real-valued dataset as float64, its type and shape checked before it is read."""
     if name not in f:
         raise ParjamError(f"{path}: missing dataset /{name}")
-    return f[name][()]
+    obj = f[name]
+    if not isinstance(obj, h5py.Dataset):
+        raise ParjamError(f"{path}: /{name} is not a dataset")
+    if obj.dtype.kind not in "biuf":
+        raise ParjamError(f"{path}: /{name} must hold real numbers, got dtype {obj.dtype}")
+    if len(obj.shape) not in ndims:
+        raise ParjamError(f"{path}: /{name} has {len(obj.shape)} dimensions, expected "
+                          f"{' or '.join(str(k) for k in ndims)}")
+    if max_size is not None and obj.size > max_size:
+        raise ParjamError(f"{path}: /{name} holds {obj.size} values: absurdly large "
+                          f"(limit {max_size})")
+    return np.asarray(obj[()], dtype=float)
+
+
+def _scalar_param(params, key, default, path):
+    """A finite real scalar from /parameters attributes (or the default)."""
+    val = params.get(key, default)
+    arr = np.asarray(val)
+    if arr.size != 1 or arr.dtype.kind not in "biuf":
+        raise ParjamError(f"{path}: parameter {key} must be one real number, got {val!r}")
+    val = float(arr.reshape(()))
+    if not np.isfinite(val):
+        raise ParjamError(f"{path}: parameter {key} must be finite, got {val}")
+    return val
 
 
 def read_packing(path):
-    """A Packing from an H5MD file (parjam's own or the reference layout), validated."""
+    """A Packing from an H5MD file (parjam's own or the reference layout), validated: every
+    problem is a one-line ParjamError, never a traceback."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise ParjamError(f"{path}: no such file")
     if not h5py.is_hdf5(path):
         raise ParjamError(f"{path}: not an HDF5 file")
+    limit = MAX_PARTICLES * 3
     try:
         with h5py.File(path, "r") as f:
-            pos = np.asarray(_dataset(f, "particles/all/position/value", path), dtype=float)
-            diam = np.asarray(_dataset(f, "particles/all/diameter", path), dtype=float)
-            edges = np.atleast_1d(np.asarray(_dataset(f, "particles/all/box/edges", path),
-                                             dtype=float))
+            pos = _dataset(f, "particles/all/position/value", path, (2, 3), limit)
+            diam = _dataset(f, "particles/all/diameter", path, (1,), limit)
+            edges = np.atleast_1d(_dataset(f, "particles/all/box/edges", path, (0, 1), 3))
             params = dict(f["parameters"].attrs) if "parameters" in f else {}
-    except OSError as exc:
+    except (OSError, RuntimeError, KeyError) as exc:  # truncated or corrupted inside
         raise ParjamError(f"{path}: unreadable HDF5 file ({exc})") from None
     return _validated(path, pos, diam, edges, params)
 
 
 def _validated(path, pos, diam, edges, params):
     if pos.ndim == 3:
+        if pos.shape[0] == 0:
+            raise ParjamError(f"{path}: the position time series holds no frame")
         pos = pos[-1]
     if pos.ndim != 2 or pos.shape[1] not in (2, 3):
         raise ParjamError(f"{path}: positions must have shape (N, 2) or (N, 3), got {pos.shape}")
     n, d = pos.shape
+    if n < 2:
+        raise ParjamError(f"{path}: a packing needs at least 2 particles, got {n}")
     if diam.shape != (n,):
         raise ParjamError(f"{path}: diameters must have shape ({n},), got {diam.shape}")
     if edges.shape != (d,) or not np.allclose(edges, edges[0], rtol=1e-12):
@@ -159,18 +191,44 @@ def _validated(path, pos, diam, edges, params):
             raise ParjamError(f"{path}: {name} contain NaN or inf")
     if np.any(diam <= 0) or edges[0] <= 0:
         raise ParjamError(f"{path}: diameters and box edges must be positive")
-    alpha = float(params.get("alpha", 2.0))
-    if not np.isfinite(alpha) or alpha <= 1:
-        raise ParjamError(f"{path}: alpha must be > 1, got {alpha}")
     L = float(edges[0])
+    if L <= 2.0 * diam.max() * (1.0 + 1e-9):
+        raise ParjamError(f"{path}: box edge {L:.6g} is not larger than twice the largest "
+                          f"diameter {diam.max():.6g}")
+    if np.abs(pos).max() > 1e3 * L:
+        raise ParjamError(f"{path}: positions lie far outside the box of edge {L:.6g} "
+                          f"(largest |x| = {np.abs(pos).max():.3g})")
+    alpha = _scalar_param(params, "alpha", 2.0, path)
+    if alpha <= 1:
+        raise ParjamError(f"{path}: alpha must be > 1, got {alpha}")
+    eps = _scalar_param(params, "epsilon", 1.0, path)
+    if eps <= 0:
+        raise ParjamError(f"{path}: epsilon must be > 0, got {eps}")
     meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in params.items()}
     meta["source"] = os.path.abspath(path)
     from parjam.system import wrap
 
+    pos = wrap(pos, L)
+    _check_distinct(path, pos, diam, L)
     try:
-        return Packing(wrap(pos, L), diam, L, alpha, float(params.get("epsilon", 1.0)), meta)
+        return Packing(pos, diam, L, alpha, eps, meta)
     except ValueError as exc:
         raise ParjamError(f"{path}: {exc}") from None
+
+
+DUPLICATE_TOL = 1e-9  # centres closer than this times the smallest diameter coincide
+
+
+def _check_distinct(path, pos, diam, L):
+    """Duplicated particles (coinciding centres) would divide by r = 0 in every force."""
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(pos, boxsize=L).query_pairs(DUPLICATE_TOL * diam.min(),
+                                                output_type="ndarray")
+    if len(pairs):
+        i, j = sorted(pairs[0])
+        raise ParjamError(f"{path}: particles {i} and {j} coincide ({len(pairs)} duplicated "
+                          f"pair(s))")
 
 
 def sha256(path):
