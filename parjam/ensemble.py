@@ -54,11 +54,15 @@ def file_name(out, member, state):
     return os.path.join(out, f"member{member:04d}_{state.label}.h5")
 
 
-def pack_member(args, member, comm, progress):
-    """Compute, write (group rank 0) and summarise the states of one ensemble member."""
+def pack_member(args, member, comm, progress, run_params=None):
+    """Compute, write (group rank 0) and summarise the states of one ensemble member; then its
+    manifest record (parjam.manifest), so that a restarted run skips it."""
+    from parjam import faults, manifest
+
     t0 = time.time()
     states, protocol, totals = member_states(args, member, comm, progress)
     rows = []
+    paths = []
     for st in states:
         net = analyze(st.pack)
         params = {
@@ -75,11 +79,36 @@ def pack_member(args, member, comm, progress):
             prov = io.provenance(comm.tompi4py().Get_size(), {"world_ranks": _world_size()})
             st.pack.meta.setdefault("species", st.pack.meta.get("species"))
             io.write_packing(path, st.pack, net, params, prov)
+            paths.append(path)
         if comm.getRank() == 0:  # one row per state, however many ranks share the member
             rows.append({"member": member, "state": st.label, "file": path, **net.summary(),
                          "phi_c": st.info.get("phi_c", np.nan)})
+    if comm.getRank() == 0 and run_params is not None:
+        manifest.write_member_record(args.out, member, paths, run_params)
     progress(f"done in {time.time() - t0:.1f} s ({totals['fire_steps']} FIRE steps, "
              f"{totals['newton_steps']} Newton steps)")
+    faults.point("pack.member")  # PARJAM_FAULT testing hook (parjam/faults.py)
+    return rows
+
+
+SUMMARY_KEYS = ("phi", "N_active", "excess", "z", "dz", "pressure", "max_force",
+                "max_force_rel")
+
+
+def rows_from_files(out, member, files):
+    """Summary rows of a finished member, read back from its files (resumed runs)."""
+    import h5py
+
+    rows = []
+    for name in sorted(files):
+        path = os.path.join(out, name)
+        with h5py.File(path, "r") as f:
+            row = {key: f["observables"][key][()] for key in SUMMARY_KEYS}
+            par = f["parameters"].attrs
+            state = par["state"]
+            row.update(member=member, file=path, phi_c=float(par.get("phi_c", np.nan)),
+                       state=state.decode() if isinstance(state, bytes) else str(state))
+        rows.append(row)
     return rows
 
 

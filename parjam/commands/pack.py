@@ -1,6 +1,9 @@
 """``parjam pack``: an ensemble of jammed packings (phi_c bisection, dphi ladder, pressures)."""
 
+import contextlib
+import glob
 import os
+import sys
 
 import numpy as np
 
@@ -8,6 +11,7 @@ from parjam.errors import ParjamError
 from parjam.packing import DISPERSITIES
 
 DEFAULT_PHI_START = {2: 0.86, 3: 0.66}
+MAX_MEMBERS = 1_000_000
 
 
 def add_parser(sub):
@@ -40,6 +44,10 @@ def add_parser(sub):
                    metavar=("LOW", "HIGH"), help="E/N window defining phi_c (1e-16 2e-16)")
     p.add_argument("--no-phic-file", action="store_true", help="do not write the phi_c state")
     p.add_argument("--out", default="packings", help="output directory (default ./packings)")
+    p.add_argument("--no-resume", dest="resume", action="store_false",
+                   help="recompute every member; by default the members that DIR/manifest.json "
+                   "lists as finished (files present, sha256 intact) are skipped, and a DIR "
+                   "holding results of other parameters is refused")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(run=run)
 
@@ -58,8 +66,10 @@ def validate(args):
         raise ParjamError(f"--alpha must be > 1, got {args.alpha}")
     if not np.isfinite(args.ratio) or args.ratio < 1.0 or args.ratio > 10.0:
         raise ParjamError(f"--ratio must lie in [1, 10], got {args.ratio}")
-    if args.members < 1:
-        raise ParjamError(f"--members must be >= 1, got {args.members}")
+    if not 1 <= args.members <= MAX_MEMBERS:
+        raise ParjamError(f"--members must lie in [1, {MAX_MEMBERS}], got {args.members}")
+    if not 0 <= args.seed < 2**63:
+        raise ParjamError(f"--seed must be a non-negative integer below 2^63, got {args.seed}")
     if not (0 < args.ftol < 1e-3):
         raise ParjamError(f"--ftol must lie in (0, 1e-3), got {args.ftol}")
     lo, hi = args.energy_window
@@ -80,8 +90,12 @@ def validate(args):
         args.phi_start = DEFAULT_PHI_START[args.dim]
 
 
-def member_groups(world, members):
-    """Split the ranks into min(members, size) groups; member m goes to group m % ngroups."""
+def member_groups(world, members, todo=None):
+    """Split the ranks into min(members, size) groups; member m goes to group m % ngroups.
+
+    ``todo`` (the members still to compute on a resumed run) keeps that assignment, so that a
+    member is computed by a group of the same size as in an uninterrupted run (bitwise the same
+    packing)."""
     from parjam import env
 
     PETSc = env.petsc()
@@ -89,32 +103,111 @@ def member_groups(world, members):
     ngroups = min(members, mpi.Get_size())
     color = mpi.Get_rank() * ngroups // mpi.Get_size()
     sub = mpi.Split(color, mpi.Get_rank())
-    mine = [m for m in range(members) if m % ngroups == color]
+    todo = range(members) if todo is None else todo
+    mine = [m for m in todo if m % ngroups == color]
     return PETSc.Comm(sub), mine
 
 
+def prepare_output(args, params):
+    """World rank 0: make DIR, refuse other parameters, find the finished members, write the
+    manifest.  Returns ({member: files} finished, [notes])."""
+    from parjam import manifest
+
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as exc:
+        raise ParjamError(f"cannot create output directory {args.out}: {exc}") from None
+    if not os.access(args.out, os.W_OK):
+        raise ParjamError(f"cannot write to output directory {args.out}")
+    manifest.check_parameters(args.out, params)
+    notes = [f"removed stale temporary file {name}"
+             for name in manifest.remove_stale_temporaries(args.out)]
+    done, damaged = manifest.finished_members(args.out, params)
+    notes += [f"member {m}: files missing or changed since they were written: recomputing"
+              for m in damaged]
+    if not args.resume:
+        done = {}
+    manifest.write_manifest(args.out, params, done)
+    return done, notes
+
+
+def _terminate_handler(out):
+    """SIGTERM (batch systems send it before SIGKILL): remove this process's temporary files,
+    say so, and end every rank at once.  Raising an exception instead would surface wherever the
+    signal lands (even inside a ctypes call, as a different exception)."""
+
+    def handler(signum, frame):
+        from mpi4py import MPI
+
+        from parjam import manifest
+
+        for directory in (out, os.path.join(out, manifest.RECORDS)):
+            for path in glob.glob(os.path.join(directory, f".*.tmp{os.getpid()}")):
+                with contextlib.suppress(OSError):
+                    os.remove(path)
+        print("parjam: interrupted (SIGTERM): finished members are kept; the same command "
+              "resumes the run", file=sys.stderr, flush=True)
+        if MPI.COMM_WORLD.Get_size() > 1:
+            MPI.COMM_WORLD.Abort(128 + signum)
+        os._exit(128 + signum)
+
+    return handler
+
+
 def run(args):
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        old = signal.signal(signal.SIGTERM, _terminate_handler(args.out))
+        try:
+            return _run(args)
+        finally:
+            signal.signal(signal.SIGTERM, old)
+    return _run(args)
+
+
+def _run(args):
     validate(args)
-    from parjam import env
-    from parjam.ensemble import pack_member, print_table
+    from parjam import env, manifest
+    from parjam.ensemble import pack_member, print_table, rows_from_files
     from parjam.progress import Progress
 
     PETSc = env.petsc()
     world = PETSc.COMM_WORLD
-    comm, mine = member_groups(world, args.members)
-    progress = Progress(world, args.quiet)
-    if not os.path.isdir(args.out):
+    mpi = world.tompi4py()
+    params = manifest.run_parameters(args)
+    outcome = None
+    if world.getRank() == 0:
         try:
-            os.makedirs(args.out, exist_ok=True)
-        except OSError as exc:
-            raise ParjamError(f"cannot create output directory {args.out}: {exc}") from None
+            outcome = prepare_output(args, params)
+        except ParjamError as exc:
+            outcome = str(exc)
+    outcome = mpi.bcast(outcome, root=0)
+    if isinstance(outcome, str):
+        raise ParjamError(outcome)
+    done, notes = outcome
+    done = {m: files for m, files in done.items() if m < args.members}
+    progress = Progress(world, args.quiet)
+    for note in notes:
+        progress(note)
+    if done:
+        progress(f"resuming: {len(done)} of {args.members} members already finished in "
+                 f"{args.out} (skipped)")
+    todo = [m for m in range(args.members) if m not in done]
+    comm, mine = member_groups(world, args.members, todo)
     rows = []
     stage = PETSc.Log.Stage("parjam pack")
     stage.push()
     for m in mine:
-        rows += pack_member(args, m, comm, progress.sub(f"member {m + 1}/{args.members}: "))
+        rows += pack_member(args, m, comm, progress.sub(f"member {m + 1}/{args.members}: "),
+                            params)
     stage.pop()
-    all_rows = world.tompi4py().gather(rows, root=0)
+    all_rows = mpi.gather(rows, root=0)
     if world.getRank() == 0:
+        finished, _ = manifest.finished_members(args.out, params)
+        manifest.write_manifest(args.out, params, finished)
+        for m, files in sorted(done.items()):
+            all_rows.append(rows_from_files(args.out, m, files))
         print_table([r for part in all_rows for r in part])
     return 0

@@ -1,0 +1,42 @@
+"""Compare two parjam HDF5 files by their results: every dataset bitwise and the /parameters
+attributes, ignoring provenance (/h5md: versions, command line, ranks) and wall-clock times."""
+
+import h5py
+import numpy as np
+
+IGNORED_ATTRS = ("seconds", "group_ranks")
+
+
+def datasets(path):
+    """{name: array} of every dataset outside /h5md."""
+    out = {}
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset) and not name.startswith("h5md"):
+                out[name] = obj[()]
+        f.visititems(visit)
+    return out
+
+
+def parameters(path):
+    with h5py.File(path, "r") as f:
+        attrs = dict(f["parameters"].attrs) if "parameters" in f else {}
+    return {k: v for k, v in attrs.items() if k not in IGNORED_ATTRS}
+
+
+def differences(a, b):
+    """Names of the datasets/parameters that differ between files a and b (empty: same)."""
+    da, db = datasets(a), datasets(b)
+    diff = sorted(set(da) ^ set(db))
+    for name in sorted(set(da) & set(db)):
+        x, y = np.asarray(da[name]), np.asarray(db[name])
+        same = x.shape == y.shape and x.dtype == y.dtype and (
+            np.array_equal(x, y, equal_nan=x.dtype.kind == "f"))
+        if not same:
+            diff.append(name)
+    pa, pb = parameters(a), parameters(b)
+    for key in sorted(set(pa) | set(pb)):
+        if key not in pa or key not in pb or not np.array_equal(np.asarray(pa[key]),
+                                                                np.asarray(pb[key])):
+            diff.append(f"parameters/{key}")
+    return diff
