@@ -80,6 +80,9 @@ def main(argv=None):
     except SystemExit as exc:  # argparse already printed its one-line usage error
         return int(exc.code or 0)
     try:
+        from parjam import faults
+
+        faults.point("command")  # PARJAM_FAULT testing hook (parjam/faults.py)
         code = args.run(args)
         # a command is collective: return only when every rank is done, so the files that rank 0
         # wrote exist for whatever any rank does next (e.g. a script or test calling main twice)
