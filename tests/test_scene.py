@@ -1,0 +1,300 @@
+"""Scenes (parjam.scene) and ``parjam run`` (parjam.commands.run): the parser's errors, the plan
+computes only what the observables need, a tiny scene end to end against the library, skipping
+finished work and resuming an interrupted run.  Serially and under mpirun -n 2."""
+
+import os
+
+import numpy as np
+import pytest
+
+from parjam import scene as sc
+from parjam.errors import ParjamError
+
+BASE = """
+[[system]]
+d = 3
+N = 64
+[protocol]
+dphi = [1e-3, 1e-2]
+[ensemble]
+members = 2
+seed = 3
+"""
+
+
+def scene_text(observables, base=BASE):
+    return base + "[observables]\n" + observables
+
+
+# --------------------------------------------------------------------------- the parser
+
+@pytest.mark.parametrize("text, key", [
+    (scene_text("contacts = true\ncolour = 3\n"), "colour"),
+    (scene_text("dos = { matrices = ['full'], binz = 3 }"), "binz"),
+    (scene_text("contacts = true\n") + "[ensemble2]\nx = 1\n", "ensemble2"),
+    (BASE.replace("N = 64", "N = 'big'") + "[observables]\ncontacts = true\n", "N"),
+    (BASE.replace("d = 3", "d = 4") + "[observables]\ncontacts = true\n", "d"),
+    (BASE.replace("N = 64", "N = 64\nalpha = 1.0") + "[observables]\ncontacts = true\n",
+     "alpha"),
+    (BASE.replace("seed = 3", "seed = 3\nmembers2 = 1") + "[observables]\ncontacts = true\n",
+     "members2"),
+    (scene_text("dos = { window = [-0.1, 0.5] }"), "window"),
+    (scene_text("dos = { window = [0.5, 0.1] }"), "window"),
+    (scene_text("lowest = { k = 1000 }"), "k"),
+    (scene_text("lowest = { k = 0 }"), "k"),
+    (scene_text("lowest = { matrices = ['full'] }"), "k"),
+    (scene_text("dos = { matrices = ['fulll'] }"), "matrices"),
+    (scene_text("dos = { at = [0.5] }"), "at"),
+    (scene_text("dos = { bins = 'x' }"), "bins"),
+    (scene_text("softmodes = { cuts = ['q=0.5'] }"), "cuts"),
+    (BASE.replace("dphi = [1e-3, 1e-2]", "dphi = [1e-3]\npressure = [1e-3]")
+     + "[observables]\ncontacts = true\n", "dphi"),
+    (BASE.replace("dphi = [1e-3, 1e-2]", "pressure = [1e-3]\nladder = 'decompress'")
+     + "[observables]\ncontacts = true\n", "ladder"),
+    (BASE.replace("dphi = [1e-3, 1e-2]", "dphi = [0.0, 1e-2]") + "[observables]\n"
+     "contacts = true\n", "dphi"),
+    (BASE + "[observables]\n", "observables"),
+    (BASE.replace("members = 2", "members = 2.5") + "[observables]\ncontacts = true\n",
+     "members"),
+])
+def test_parser_rejects_with_the_key(text, key):
+    with pytest.raises(ParjamError) as err:
+        sc.loads(text, "bad.toml")
+    msg = str(err.value)
+    assert "\n" not in msg and "bad.toml" in msg
+    assert key in msg, msg
+
+
+def test_parser_rejects_bad_toml_and_missing_tables(tmp_path):
+    with pytest.raises(ParjamError, match="not valid TOML"):
+        sc.loads("[[system]\nd = 3", "x.toml")
+    with pytest.raises(ParjamError, match="system"):
+        sc.loads("[protocol]\ndphi = [1e-3]\n[observables]\ncontacts = true\n")
+    with pytest.raises(ParjamError, match="no such scene file"):
+        sc.load(tmp_path / "missing.toml")
+
+
+def test_parser_defaults_and_lists():
+    s = sc.loads(scene_text("contacts = true").replace("N = 64", "N = [64, 128]"))
+    assert [x.name for x in s.systems] == ["d3-mono-N64", "d3-mono-N128"]
+    assert s.protocol.labels() == ["phi_c", "dphi1.0e-03", "dphi1.0e-02"]
+    two_d = sc.loads(scene_text("contacts = true").replace("d = 3", "d = 2"))
+    assert two_d.systems[0].dispersity == "bi" and two_d.systems[0].ratio == 1.4
+
+
+# --------------------------------------------------------------------------- the planner
+
+def kinds(stages):
+    return [(st.kind, st.matrix) for st in stages]
+
+
+def test_contacts_only_plans_no_spectrum():
+    stages = sc.plan(sc.loads(scene_text("contacts = true")))
+    assert kinds(stages) == [("pack", None), ("network", None), ("summary", None)]
+
+
+def test_plan_picks_the_cheapest_solver():
+    big = BASE.replace("N = 64", "N = 4096")
+    # D(omega) of the relaxed matrix only: no full matrix, eigenvalues only (no vectors)
+    st = sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")))
+    spec = [x for x in st if x.kind == "spectrum"]
+    assert [x.matrix for x in spec] == ["relaxed"]
+    assert {p["solver"] for p in spec[0].params.values()} == {"dense-eigvalsh"}
+    # per-mode sums need eigenvectors, only at the state asked for
+    st = sc.plan(sc.loads(scene_text("dos = true\ntrans = { at = [1e-3] }")))
+    full = next(x for x in st if x.kind == "spectrum")
+    assert full.params["dphi1.0e-03"]["solver"] == "dense-eigh"
+    assert full.params["dphi1.0e-02"]["solver"] == "dense-eigvalsh"
+    # large systems: the lowest modes by shift-and-invert, a window by slicing
+    st = sc.plan(sc.loads(scene_text("lowest = { k = 20 }", big)))
+    assert {p["solver"] for p in st[2].params.values()} == {"sinvert"}
+    st = sc.plan(sc.loads(scene_text("omega_star = { window = [0, 0.2] }", big)))
+    assert {p["solver"] for p in st[2].params.values()} == {"slice"}
+    # the whole spectrum of a large system is refused before any work
+    with pytest.raises(ParjamError, match="dense_max_dof"):
+        sc.plan(sc.loads(scene_text("dos = true\n[solver]\ndense_max_dof = 1000\n", big)))
+
+
+def test_stage_keys_follow_their_inputs():
+    a = {st.kind + str(st.matrix): st.key
+         for st in sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")))}
+    b = {st.kind + str(st.matrix): st.key
+         for st in sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")
+                                    .replace("members = 2", "members = 3")))}
+    c = {st.kind + str(st.matrix): st.key
+         for st in sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")
+                                    .replace("seed = 3", "seed = 8")))}
+    # more members: the packings and spectra of the first two are reused, the summary is not
+    assert a["packNone"] == b["packNone"] and a["spectrumrelaxed"] == b["spectrumrelaxed"]
+    assert a["summaryNone"] != b["summaryNone"]
+    assert a["packNone"] != c["packNone"] and a["spectrumrelaxed"] != c["spectrumrelaxed"]
+
+
+def test_dry_run_prints_the_plan(tmp_path, capsys, world):
+    from parjam import cli
+
+    path = tmp_path / f"s{world.getRank()}.toml"
+    path.write_text(scene_text("dos = true\ntrans = { at = [1e-3] }"))
+    assert cli.main(["run", str(path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    if world.getRank() == 0:
+        assert "dense-eigh" in out and "dense-eigvalsh" in out and "MB per rank" in out
+    bad = tmp_path / f"b{world.getRank()}.toml"
+    bad.write_text(scene_text("dos = { binz = 3 }"))
+    assert cli.main(["run", str(bad), "--dry-run"]) == 2
+    assert not os.path.exists("results/s0")
+
+
+# --------------------------------------------------------------------------- running
+
+def run_scene(text, out, world, stop_after=None):
+    from parjam.commands import run as runmod
+    from parjam.progress import Progress
+
+    scene = sc.loads(text, "test.toml")
+    runner = runmod.Runner(scene, sc.plan(scene), out, world, Progress(quiet=True),
+                           stop_after=stop_after)
+    return runner.run(), runner
+
+
+def log_lines(out):
+    with open(os.path.join(out, "stage.log")) as fh:
+        return [line.split(" ", 1)[1].strip() for line in fh]
+
+
+def test_contacts_only_runs_no_eigensolver(shared_tmp, world, monkeypatch):
+    from parjam import moduli, softmodes, spectrum
+    from parjam.commands import run as runmod
+
+    def forbidden(*a, **k):
+        raise AssertionError("an eigensolver or dynamical matrix was used")
+
+    for mod, name in ((spectrum, "compute"), (spectrum, "dense_matrix"),
+                      (spectrum, "dynamical_matrix"), (moduli, "compute"),
+                      (softmodes, "analyse")):
+        monkeypatch.setattr(mod, name, forbidden)
+    before = runmod.COUNTERS.copy()
+    out = os.path.join(shared_tmp, "contacts")
+    code, runner = run_scene(scene_text("contacts = true"), out, world)
+    assert code == 0
+    new = runmod.COUNTERS - before
+    assert not any(k.startswith("eigensolve") for k in new), new
+    assert new["network"] > 0
+
+
+TINY = scene_text("""contacts = true
+dos = { matrices = ["full", "relaxed"], bins = 8 }
+trans = { at = [1e-3] }
+""")
+
+
+def test_tiny_scene_matches_the_library(shared_tmp, world):
+    from parjam import network, observables, spectrum
+    from parjam.commands import run as runmod
+    from parjam.packing import make_jammed
+
+    out = os.path.join(shared_tmp, "tiny")
+    code, runner = run_scene(TINY, out, world)
+    assert code == 0
+    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    for member in range(2):
+        phi_c, packs = make_jammed(3, 64, [1e-3, 1e-2], seed=3, member=member)
+        for pack in packs:
+            label = f"dphi{pack.meta['dphi']:.1e}"
+            net = network.analyze(pack)
+            got = summary[label]["network"]
+            assert got["phi_c"][member] == pytest.approx(phi_c, rel=1e-12)
+            assert got["dz"][member] == pytest.approx(net.dz, abs=1e-12)
+            assert got["pressure"][member] == pytest.approx(net.pressure, rel=1e-8)
+            system = spectrum.active_system(pack, net)
+            for kind in ("full", "relaxed"):
+                lam = np.linalg.eigvalsh(spectrum.dense_matrix(system, kind))[system.d:]
+                spec = summary[label]["spectrum"][kind]
+                mine = spec["frequency"][spec["member_of_mode"] == member]
+                np.testing.assert_allclose(mine, observables.frequency(lam),
+                                           atol=1e-7 * np.sqrt(lam.max()))
+    trans = summary["dphi1.0e-03"]["spectrum"]["full"]
+    assert np.all(trans["eps_perp"] > 0) and np.all(trans["eps_par"] > 0)
+    assert "eps_perp" not in summary["dphi1.0e-02"]["spectrum"]["full"]
+    assert "eps_perp" not in summary["dphi1.0e-03"]["spectrum"]["relaxed"]
+
+
+def test_rerun_skips_finished_stages(shared_tmp, world):
+    from parjam.commands import run as runmod
+
+    out = os.path.join(shared_tmp, "tiny")  # made by the previous test, or made here
+    run_scene(TINY, out, world)
+    world.tompi4py().Barrier()
+    lines = log_lines(out)
+    parts = [os.path.join(r, f) for r, _, fs in os.walk(out) for f in fs if f.endswith(".h5")]
+    mtimes = {p: os.stat(p).st_mtime_ns for p in parts}
+    world.tompi4py().Barrier()
+    before = runmod.COUNTERS.copy()
+    code, _ = run_scene(TINY, out, world)
+    assert code == 0
+    assert not (runmod.COUNTERS - before), runmod.COUNTERS - before
+    assert log_lines(out) == lines
+    assert {p: os.stat(p).st_mtime_ns for p in parts} == mtimes
+
+
+def test_interrupted_run_resumes_at_the_next_member(shared_tmp, world):
+    from parjam.commands import run as runmod
+
+    text = scene_text("contacts = true\ndos = { matrices = ['relaxed'] }").replace(
+        "members = 2", "members = 4")
+    out = os.path.join(shared_tmp, "resume")
+    code, _ = run_scene(text, out, world, stop_after=1)
+    assert code == runmod.EXIT_INTERRUPTED
+    world.tompi4py().Barrier()
+    first = log_lines(out)
+    ngroups = min(4, world.getSize())
+    assert len(first) == ngroups and all("pack-" in line for line in first)
+    # a leftover temporary file of a killed write does not count as a finished member
+    pack_dir = os.path.dirname(next(
+        os.path.join(r, f) for r, _, fs in os.walk(out) for f in fs if f.endswith(".h5")))
+    world.tompi4py().Barrier()
+    if world.getRank() == 0:
+        open(os.path.join(pack_dir, ".member0003_phi_c.h5.tmp999"), "w").close()
+    world.tompi4py().Barrier()
+    code, runner = run_scene(text, out, world)
+    assert code == 0
+    world.tompi4py().Barrier()
+    lines = log_lines(out)
+    assert lines[:len(first)] == first
+    computed = [line for line in lines if " member " in line]
+    assert len(computed) == len(set(computed)) == 3 * 4  # pack, network, spectrum x 4 members
+    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    assert summary["dphi1.0e-02"]["network"]["dz"].shape == (4,)
+
+
+def test_small_paper_scene_exponents(shared_tmp, world):
+    """The paper's laws on a tiny ensemble (3D, N = 128): dz ~ p^(1/2) (Eq. 22) and
+    omega* ~ dz in the relaxed system (Fig. "sans"), within generous bounds."""
+    from parjam.commands import run as runmod
+    from parjam.moduli import power_law_fit
+
+    text = """
+[[system]]
+d = 3
+N = 128
+[protocol]
+dphi = [1e-4, 1e-3, 1e-2, 1e-1]
+[ensemble]
+members = 3
+seed = 11
+[observables]
+contacts = true
+omega_star = { matrices = ["relaxed"] }
+"""
+    out = os.path.join(shared_tmp, "laws")
+    code, runner = run_scene(text, out, world)
+    assert code == 0
+    s = runmod.read_summary(next(iter(runner.summaries.values())))
+    labels = ["dphi1.0e-03", "dphi1.0e-02", "dphi1.0e-01"]
+    p = np.array([s[lab]["network"]["pressure"] for lab in labels]).T  # members x states
+    dz = np.array([s[lab]["network"]["dz_iso"] for lab in labels]).T
+    ws = np.array([s[lab]["spectrum"]["relaxed"]["omega_star"] for lab in labels]).T
+    slope_dz, _ = power_law_fit(p.mean(axis=0), dz)
+    assert 0.3 < slope_dz < 0.75, slope_dz
+    slope_w, _ = power_law_fit(dz.mean(axis=0), ws)
+    assert 0.6 < slope_w < 1.5, slope_w
