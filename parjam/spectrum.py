@@ -445,7 +445,10 @@ def slepc_modes(comm, A, system, kind, method, k, window, tol, target, want_vect
             spec = _solve_and_collect(comm, eps, A, system, kind, method, k, window, tol, norm,
                                       target, want_vectors, log)
         finally:
-            eps.destroy()
+            try:
+                eps.destroy()
+            except PETSc.Error:  # after a failed solve SLEPc may refuse (a DS matrix checked
+                pass  # out): the solve's own error, already raised, is the one to report
             M.destroy()
             for v in (deflation if method == "sinvert" else []):
                 v.destroy()

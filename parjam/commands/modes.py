@@ -8,6 +8,7 @@ import numpy as np
 from parjam.errors import ParjamError
 
 EXIT_INCOMPLETE = 4  # some requested pairs did not converge to the tolerance
+MAX_BINS = 1_000_000
 
 
 def add_parser(sub):
@@ -68,8 +69,12 @@ def validate(args):
         raise ParjamError(f"--k must be >= 1, got {args.k}")
     args.window_pair = parse_pair(args.window, "--window") if args.window else None
     args.plateau_pair = parse_pair(args.plateau, "--plateau") if args.plateau else None
-    if args.bins < 1:
-        raise ParjamError(f"--bins must be >= 1, got {args.bins}")
+    if not 1 <= args.bins <= MAX_BINS:
+        raise ParjamError(f"--bins must lie in [1, {MAX_BINS}], got {args.bins}")
+    if os.path.abspath(args.out) == os.path.abspath(args.packing) or any(
+            os.path.abspath(p) == os.path.abspath(args.packing)
+            for p in output_paths(args.out, args.matrix).values()):
+        raise ParjamError("--out must differ from the input packing")
     if args.target is not None and not np.isfinite(args.target):
         raise ParjamError("--target must be finite")
     if args.method == "slice" and args.window is None:
