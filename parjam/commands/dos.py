@@ -69,8 +69,8 @@ def run(args):
 
     PETSc = env.petsc()
     rank = PETSc.COMM_WORLD.getRank()
-    if args.bins < 1:
-        raise ParjamError(f"--bins must be >= 1, got {args.bins}")
+    if not 1 <= args.bins <= 1_000_000:
+        raise ParjamError(f"--bins must lie in [1, 1000000], got {args.bins}")
     plateau = parse_pair(args.plateau, "--plateau") if args.plateau else None
     if getattr(args, "method", "spectra") == "kpm":
         return run_kpm(args, plateau)

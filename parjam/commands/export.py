@@ -2,6 +2,8 @@
 
 import os
 
+from parjam.errors import ParjamError
+
 
 def add_parser(sub):
     p = sub.add_parser("export", help="write a packing as extended XYZ (OVITO, ASE)")
@@ -16,9 +18,14 @@ def run(args):
     from parjam.io import read_packing, write_extxyz
     from parjam.network import analyze
 
-    pack = read_packing(args.file)
     out = args.out or os.path.splitext(args.file)[0] + ".xyz"
+    if os.path.isdir(out):
+        raise ParjamError(f"--out {out} is a directory")
+    pack = read_packing(args.file)
     if MPI.COMM_WORLD.Get_rank() == 0:
-        write_extxyz(out, pack, analyze(pack))
+        try:
+            write_extxyz(out, pack, analyze(pack))
+        except OSError as exc:
+            raise ParjamError(f"{out}: cannot write ({exc.strerror})", collective=False) from None
         print(out)
     return 0

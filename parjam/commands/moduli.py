@@ -29,6 +29,8 @@ def run(args):
     comm = PETSc.COMM_WORLD
     if args.out and os.path.abspath(args.out) == os.path.abspath(args.packing):
         raise ParjamError("--out must differ from the input packing")
+    if args.out and os.path.isdir(args.out):
+        raise ParjamError(f"--out {args.out} is a directory")
     progress = Progress(comm, args.quiet, "moduli: ")
     pack = io.read_packing(args.packing)
     mod = moduli.compute(pack, comm, progress)

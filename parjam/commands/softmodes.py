@@ -48,6 +48,8 @@ def validate(args):
                           "--subdivide M")
     if os.path.abspath(args.out) == os.path.abspath(args.packing):
         raise ParjamError("--out must differ from the input packing")
+    if os.path.isdir(args.out):
+        raise ParjamError(f"--out {args.out} is a directory")
 
 
 def planes_from(args, d):
