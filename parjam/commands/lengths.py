@@ -1,0 +1,134 @@
+"""``parjam lengths``: sound speeds c_L, c_T, the lengths l_L = c_L / omega*, l_T = c_T / omega*
+and l* (cut cubes), and the longitudinal/transverse structure factors of the eigenmodes
+(see parjam.lengths and parjam.structure).  Computes only what ``--what`` asks for."""
+
+import os
+
+import numpy as np
+
+from parjam.errors import ParjamError
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "lengths", help="sound speeds, l_L, l_T, l* and the structure factors F_L, F_T",
+        description="speeds: B and G by linear response (parjam moduli) and c_L = sqrt((B + "
+        "2(d-1)G/d)/rho), c_T = sqrt(G/rho) with rho = N'/V (non-rattlers, unit masses). omega: "
+        "the spectrum (dense when complete, else --k lowest modes) and omega*; with speeds also "
+        "l_L = c_L/omega*, l_T = c_T/omega*. lstar: cubes of several edges with their boundary "
+        "contacts cut, their non-trivial soft modes counted (MUMPS inertia), l* = the edge "
+        "above which fewer than half have soft modes, against the Maxwell estimate d z <|r_a|> "
+        "/ dz. structure: F_L(k, omega), F_T(k, omega) of the eigenmodes on the box "
+        "wavevectors, peak dispersion, its slopes and l_T = 1/k* where the transverse peak "
+        "reaches omega*.")
+    p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
+    p.add_argument("--what", nargs="+", default=["speeds", "omega"],
+                   help="any of speeds, omega, lstar, structure, all (default: speeds omega)")
+    p.add_argument("--matrix", default="full", choices=("full", "relaxed"),
+                   help="dynamical matrix for omega* and the structure factors (default full)")
+    p.add_argument("--k", type=int, help="lowest modes to compute (default: all, when d N' <= "
+                   "3000)")
+    p.add_argument("--method", default="auto", choices=("auto", "dense", "sinvert"))
+    p.add_argument("--plateau", help="plateau window W1,W2 for D0 and omega*")
+    p.add_argument("--edges", help="cube edges for l*, as fractions of L (default "
+                   "0.2,0.3,...,1.0)")
+    p.add_argument("--samples", type=int, default=8, help="cube positions per edge (default 8)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the cube positions")
+    p.add_argument("--kmax", type=float, help="largest wavenumber (default pi / <sigma>)")
+    p.add_argument("--kfit", type=float,
+                   help="fit omega = c k over k <= KFIT (default 3 pi/L: shells |m|^2 = 1, 2)")
+    p.add_argument("--smooth", type=float, default=0.05,
+                   help="relative width of the peak smoothing in log omega (default 0.05)")
+    p.add_argument("--out", help="write /lengths/* to this HDF5 file")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(run=run)
+
+
+def parse_floats(text, name, count=None):
+    try:
+        vals = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ParjamError(f"{name} {text!r}: expected comma-separated numbers") from None
+    if not vals or (count and len(vals) != count) or not all(np.isfinite(vals)):
+        raise ParjamError(f"{name} {text!r}: expected {count or 'some'} finite numbers")
+    return vals
+
+
+def validate(args):
+    from parjam.lengths import WHAT
+
+    what = list(WHAT) if "all" in args.what else args.what
+    bad = [w for w in what if w not in WHAT]
+    if bad:
+        raise ParjamError(f"--what {' '.join(bad)}: choose from {', '.join(WHAT)} or all")
+    if args.samples < 1:
+        raise ParjamError(f"--samples must be >= 1, got {args.samples}")
+    if not 0 < args.smooth < 1:
+        raise ParjamError(f"--smooth must lie in (0, 1), got {args.smooth}")
+    if args.out and os.path.abspath(args.out) == os.path.abspath(args.packing):
+        raise ParjamError("--out must differ from the input packing")
+    edges = parse_floats(args.edges, "--edges") if args.edges else None
+    if edges and not all(0 < e <= 1 for e in edges):
+        raise ParjamError(f"--edges must be fractions of L in (0, 1], got {args.edges}")
+    plateau = tuple(parse_floats(args.plateau, "--plateau", 2)) if args.plateau else None
+    for name in ("kmax", "kfit"):
+        v = getattr(args, name)
+        if v is not None and not v > 0:
+            raise ParjamError(f"--{name} must be positive, got {v}")
+    return what, edges, plateau
+
+
+def run(args):
+    from parjam import env, io, lengths
+    from parjam.progress import Progress
+
+    PETSc = env.petsc()
+    comm = PETSc.COMM_WORLD
+    what, edges, plateau = validate(args)
+    progress = Progress(comm, args.quiet, "lengths: ")
+    pack = io.read_packing(args.packing)
+    res = lengths.compute(
+        comm, pack, what, matrix=args.matrix, k=args.k, method=args.method, plateau=plateau,
+        ells=None if edges is None else np.array(edges) * pack.L, samples=args.samples,
+        seed=args.seed, k_max=args.kmax, k_fit=args.kfit, smooth=args.smooth,
+        progress=progress)
+    if args.out and comm.getRank() == 0:
+        prov = io.provenance(comm.getSize(), {
+            "command": "lengths", "input": os.path.abspath(args.packing),
+            "input_sha256": io.sha256(args.packing), "what": what})
+        lengths.write(args.out, res, prov)
+    comm.tompi4py().Barrier()
+    if comm.getRank() == 0:
+        print_summary(res, args.out)
+    return 0
+
+
+def print_summary(res, out):
+    s = res.summary()
+    lines = [f"N' / N            {s['N_active']} / {s['N']}   (rho = N'/V = {s['rho']:.6g})",
+             f"z, dz             {s['z']:.4f}, {s['dz']:.4f}"]
+    if "B" in s:
+        lines += [f"B, G              {s['B']:.6e}, {s['G']:.6e}"
+                  + ("   (G_min < 0: UNSTABLE to some shear)" if s["G_min"] < 0 else ""),
+                  f"c_L, c_T          {s['c_L']:.6e}, {s['c_T']:.6e}"]
+    if "omega_star" in s:
+        lines.append(f"D0, omega*        {s['D0']:.6e}, {s['omega_star']:.6e}   "
+                     f"({res.spectrum.matrix} matrix, {len(res.spectrum.eigenvalue)} modes)")
+    if "l_L" in s:
+        lines.append(f"l_L, l_T          {s['l_L']:.6e}, {s['l_T']:.6e}")
+    if "lstar" in s:
+        lines.append(f"l* (cut cubes)    {s['lstar']:.4g}   (estimate d z <|r_a|>/dz = "
+                     f"{s['lstar_estimate']:.4g}; half the cubes soft below "
+                     f"{s['lstar_soft']:.4g}; L = {s['L']:.4g})")
+        if res.lstar.failed:
+            lines.append(f"                  {res.lstar.failed} cubes without a clear gap "
+                         "left out of the soft-mode counts")
+    if "c_T_fit" in s:
+        lines.append(f"dispersion slopes c_L, c_T = {s['c_L_fit']:.6e}, {s['c_T_fit']:.6e}   "
+                     f"(k <= {s['k_fit']:.3g})")
+        if "l_T_structure" in s:
+            lines.append(f"l_T, l_L from F   {s['l_T_structure']:.6e}, {s['l_L_structure']:.6e}"
+                         "   (1/k where the peak reaches omega*)")
+    if out:
+        lines.append(f"written           {out}")
+    print("\n".join(lines), flush=True)
