@@ -32,6 +32,12 @@ from parjam.errors import ParjamError, UnjammedError
 METHODS = ("auto", "dense", "sinvert", "slice")
 MATRICES = hessian.KINDS
 DENSE_MAX_DOF = 3000  # auto: dense LAPACK up to this many degrees of freedom d N'
+# auto with --k (measured, docs/speed-accuracy.md): sinvert was 2x (759 dof) to 30x (3066 dof)
+# faster than dense for k <= 10 % of the modes and tied at 375 dof; dense won from about 15-20 %
+# of the modes on (1.6x at a third); dense reaches residuals ~1e-15, sinvert ~1e-12 at --tol 1e-10
+DENSE_SMALL_DOF = 400  # auto --k: dense below this many dof whatever k
+DENSE_FRACTION = 0.15  # auto --k: dense (up to DENSE_MAX_DOF) when k >= this fraction of modes
+DENSE_TOL = 1e-12  # auto --k: dense (up to DENSE_MAX_DOF) when --tol is tighter than this
 DENSE_LIMIT_DOF = 20000  # --method dense refused above (a 20000^2 matrix is 3.2 GB)
 ZERO_TOL = 1e-9  # |lambda| / ||D||_inf below which an eigenvalue belongs to the zero cluster
 PREFIX = "modes_"
@@ -172,13 +178,22 @@ class Spectrum:
         return self.matrix != "stress" and self.n_negative > 0
 
 
-def choose_method(method, dof, window):
-    """``auto``: dense up to DENSE_MAX_DOF degrees of freedom, else slice (window) or sinvert."""
+def choose_method(method, dof, window, k=None, n_modes=None, tol=None):
+    """``auto``: above DENSE_MAX_DOF degrees of freedom slice (window) or sinvert; below it dense,
+    except for the k lowest modes (k and n_modes given), where sinvert is chosen unless the
+    system is tiny (DENSE_SMALL_DOF), k is a large share of the modes (DENSE_FRACTION) or the
+    tolerance is below what sinvert reaches cheaply (DENSE_TOL): the crossovers measured in
+    docs/speed-accuracy.md."""
     if method != "auto":
         return method
-    if dof <= DENSE_MAX_DOF:
+    if dof > DENSE_MAX_DOF:
+        return "slice" if window is not None else "sinvert"
+    if window is not None or k is None or n_modes is None:
         return "dense"
-    return "slice" if window is not None else "sinvert"
+    if (dof <= DENSE_SMALL_DOF or k >= DENSE_FRACTION * n_modes
+            or (tol is not None and tol < DENSE_TOL)):
+        return "dense"
+    return "sinvert"
 
 
 def window_interval(window, norm):
@@ -223,7 +238,7 @@ def compute(comm, system, kind="full", k=None, window=None, method="auto", tol=1
         raise ParjamError(f"tolerance must lie in (0, 1e-2), got {tol}")
     if k is not None:
         check_k(k, system)
-    method = choose_method(method, system.dof, window)
+    method = choose_method(method, system.dof, window, k, system.n_modes, tol)
     if method == "slice" and window is None:
         raise ParjamError("--method slice needs --window WA,WB")
     if method == "dense" and system.dof > DENSE_LIMIT_DOF:

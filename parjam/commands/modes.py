@@ -27,8 +27,9 @@ def add_parser(sub):
     g.add_argument("--k", type=int, help="number of lowest non-translational modes")
     g.add_argument("--window", help="frequency window WA,WB: every mode with WA <= omega <= WB")
     p.add_argument("--method", default="auto", choices=("auto", "dense", "sinvert", "slice"),
-                   help="auto: dense LAPACK up to 3000 dof, else sinvert (--k) or slice "
-                   "(--window)")
+                   help="auto: --window: dense LAPACK up to 3000 dof, else slice; --k: "
+                   "sinvert, or dense up to 3000 dof when N is tiny (<= 400 dof), k >= 15%% of "
+                   "the modes or --tol < 1e-12 (measured crossovers, docs/speed-accuracy.md)")
     p.add_argument("--vectors", action="store_true", help="store the eigenvectors (K, N', d)")
     p.add_argument("--tol", type=float, default=1e-10,
                    help="accept pairs with ||D v - lambda v|| / ||D||_inf <= TOL (1e-10)")
