@@ -298,3 +298,40 @@ omega_star = { matrices = ["relaxed"] }
     assert 0.3 < slope_dz < 0.75, slope_dz
     slope_w, _ = power_law_fit(dz.mean(axis=0), ws)
     assert 0.6 < slope_w < 1.5, slope_w
+
+
+def test_lowest_modes_and_window_use_slepc(shared_tmp, world):
+    """k lowest modes by shift-and-invert (vectors stored) and a window by slicing, as the plan
+    says when dense is not allowed, equal the dense eigenvalues of the same packing."""
+    from parjam import observables, spectrum
+    from parjam.commands import run as runmod
+    from parjam.packing import make_jammed
+
+    text = BASE.replace("dphi = [1e-3, 1e-2]", "dphi = [1e-2]").replace(
+        "members = 2", "members = 1") + """[observables]
+lowest = { k = 5, matrices = ["full"], vectors = true }
+omega_star = { matrices = ["relaxed"], window = [0.0, 0.3] }
+[solver]
+small_dof = 0
+"""
+    scene = sc.loads(text)
+    solvers = {st.matrix: st.params["dphi1.0e-02"]["solver"]
+               for st in sc.plan(scene) if st.kind == "spectrum"}
+    assert solvers == {"full": "sinvert", "relaxed": "slice"}
+    out = os.path.join(shared_tmp, "slepc")
+    code, runner = run_scene(text, out, world)
+    assert code == 0
+    _, (pack,) = make_jammed(3, 64, [1e-2], seed=3, member=0)
+    system = spectrum.active_system(pack)
+    for st in runner.stages:
+        if st.kind != "spectrum":
+            continue
+        rec = runmod.read_part(runner.part_path(st, 0))["dphi1.0e-02"]
+        w = observables.frequency(
+            np.linalg.eigvalsh(spectrum.dense_matrix(system, st.matrix))[system.d:])
+        ref = w[:5] if st.matrix == "full" else w[w <= 0.3]
+        np.testing.assert_allclose(rec["frequency"], ref, rtol=1e-8)
+        if st.matrix == "full":
+            assert rec["eigenvector"].shape == (5, system.n, 3)
+        else:
+            assert "eigenvector" not in rec
