@@ -335,3 +335,29 @@ small_dof = 0
             assert rec["eigenvector"].shape == (5, system.n, 3)
         else:
             assert "eigenvector" not in rec
+
+
+def test_a_member_that_does_not_jam_is_left_out(shared_tmp, world, monkeypatch):
+    from parjam import ensemble
+    from parjam.commands import run as runmod
+    from parjam.errors import UnjammedError
+
+    real = ensemble.pack_member
+
+    def flaky(args, member, comm, progress):
+        if member == 1:
+            raise UnjammedError("unjammed at phi = 0.6 (test)", collective=False)
+        return real(args, member, comm, progress)
+
+    monkeypatch.setattr(ensemble, "pack_member", flaky)
+    text = scene_text("contacts = true").replace("members = 2", "members = 3")
+    out = os.path.join(shared_tmp, "failing")
+    code, runner = run_scene(text, out, world)
+    assert code == 0
+    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    assert summary["attrs"]["members"] == 2
+    assert list(summary["attrs"]["failed_members"]) == [1]
+    assert summary["dphi1.0e-02"]["network"]["dz"].shape == (2,)
+    world.tompi4py().Barrier()
+    code, _ = run_scene(text, out, world)  # the failure is remembered, not retried
+    assert code == 0

@@ -19,6 +19,7 @@ ranks a group shares a member (distributed minimisation, distributed matrices).
 import argparse
 import collections
 import os
+import sys
 import time
 
 import numpy as np
@@ -280,7 +281,16 @@ class Runner:
     def summary_path(self, st):
         return os.path.join(self.out, f"summary-{st.system.name}-{st.key}.h5")
 
+    def failed_path(self, system, m):
+        return os.path.join(self.pack_dirs[system.name], f"member{m:04d}.failed")
+
+    def failed(self, system, m):
+        """The member's packing could not be made (it did not jam): left out of everything."""
+        return os.path.isfile(self.failed_path(system, m))
+
     def member_done(self, st, m):
+        if self.failed(st.system, m):
+            return True
         if st.kind == "pack":
             d = self.stage_dir(st)
             return all(os.path.isfile(os.path.join(d, f"member{m:04d}_{lab}.h5"))
@@ -352,11 +362,20 @@ class Runner:
         if st.kind == "pack":
             from parjam.ensemble import pack_member
 
+            from parjam.errors import UnjammedError
+
             COUNTERS["pack"] += 1
             args = pack_args(self.scene, st.system, self.stage_dir(st))
             sub = self.progress.sub(f"pack {st.system.name} member {m + 1}: ")
             sub.enabled = False  # the bisection's lines would drown the stage progress
-            pack_member(args, m, comm, sub)
+            try:
+                pack_member(args, m, comm, sub)
+            except UnjammedError as exc:  # rare: the member is left out, the ensemble goes on
+                if comm.getRank() == 0:
+                    with open(self.failed_path(st.system, m), "w") as fh:
+                        fh.write(f"{exc}\n")
+                    print(f"parjam: warning: {st.system.name} member {m}: {exc}; left out",
+                          file=sys.stderr, flush=True)
             return
         data = {}
         for label in st.states:
@@ -393,8 +412,10 @@ class Runner:
                 if dep.key in st.deps and dep.kind != "pack":
                     tag = dep.kind + (f"/{dep.matrix}" if dep.matrix else "")
                     by_kind[tag] = [read_part(self.part_path(dep, m))
-                                    for m in range(self.scene.members)]
-            write_summary(path, st, by_kind, self.scene)
+                                    for m in range(self.scene.members)
+                                    if not self.failed(st.system, m)]
+            failed = [m for m in range(self.scene.members) if self.failed(st.system, m)]
+            write_summary(path, st, by_kind, self.scene, failed)
             with open(os.path.join(self.out, "stage.log"), "a") as fh:
                 fh.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} computed {st.name}\n")
         self.mpi.Barrier()
@@ -446,7 +467,7 @@ def ensemble_dos(records, bins, log=False, omega_min=None):
     return centres, edges, mean, err
 
 
-def write_summary(path, st, by_kind, scene):
+def write_summary(path, st, by_kind, scene, failed=()):
     """/<state>/<kind>/<quantity>: per-member values (axis 0 = member), mean and error, and for
     spectra the ensemble D(omega) and the pooled per-mode sums."""
     from parjam import io, observables
@@ -458,7 +479,8 @@ def write_summary(path, st, by_kind, scene):
         f.attrs["system"] = st.system.name
         for k, v in st.system.key().items():
             f.attrs[k] = v
-        f.attrs["members"] = scene.members
+        f.attrs["members"] = scene.members - len(failed)
+        f.attrs["failed_members"] = np.array(list(failed), dtype=np.int64)
         f.attrs["states"] = np.array([s.encode() for s in st.states])
         for tag, parts in by_kind.items():
             kind = tag.split("/")[0]
