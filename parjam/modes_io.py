@@ -102,11 +102,15 @@ def read_spectrum(path):
     path = os.fspath(path)
     if not os.path.isfile(path) or not h5py.is_hdf5(path):
         raise ParjamError(f"{path}: not an HDF5 file")
-    with h5py.File(path, "r") as f:
-        if "modes" not in f or f["modes"].attrs.get("format") != FORMAT:
-            raise ParjamError(f"{path}: not a parjam spectrum file (no /modes of {FORMAT!r})")
-        g = f["modes"]
-        out = {key: g[key][()] for key in g if isinstance(g[key], h5py.Dataset)}
-        out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in g.attrs.items()}
-        out["dos"] = {key: f["dos"][key][()] for key in f["dos"]} if "dos" in f else {}
+    try:
+        with h5py.File(path, "r") as f:
+            if "modes" not in f or f["modes"].attrs.get("format") != FORMAT:
+                raise ParjamError(f"{path}: not a parjam spectrum file (no /modes of {FORMAT!r})")
+            g = f["modes"]
+            out = {key: g[key][()] for key in g if isinstance(g[key], h5py.Dataset)}
+            out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v)
+                            for k, v in g.attrs.items()}
+            out["dos"] = {key: f["dos"][key][()] for key in f["dos"]} if "dos" in f else {}
+    except (OSError, RuntimeError, KeyError) as exc:  # truncated or corrupted inside
+        raise ParjamError(f"{path}: unreadable HDF5 file ({exc})") from None
     return out

@@ -1,5 +1,7 @@
 """``parjam dos``: ensemble-averaged D(omega), D0 and omega* over spectrum files."""
 
+import os
+
 import numpy as np
 
 from parjam.errors import ParjamError
@@ -71,6 +73,8 @@ def run(args):
     rank = PETSc.COMM_WORLD.getRank()
     if not 1 <= args.bins <= 1_000_000:
         raise ParjamError(f"--bins must lie in [1, 1000000], got {args.bins}")
+    if os.path.isdir(args.out):
+        raise ParjamError(f"--out {args.out} is a directory")
     plateau = parse_pair(args.plateau, "--plateau") if args.plateau else None
     if getattr(args, "method", "spectra") == "kpm":
         return run_kpm(args, plateau)

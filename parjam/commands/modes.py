@@ -76,6 +76,8 @@ def validate(args):
             os.path.abspath(p) == os.path.abspath(args.packing)
             for p in output_paths(args.out, args.matrix).values()):
         raise ParjamError("--out must differ from the input packing")
+    if os.path.isdir(args.out):
+        raise ParjamError(f"--out {args.out} is a directory")
     if args.target is not None and not np.isfinite(args.target):
         raise ParjamError("--target must be finite")
     if args.method == "slice" and args.window is None:
