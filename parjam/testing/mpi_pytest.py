@@ -12,7 +12,9 @@ deadlocks.  After every test the ranks therefore compare outcomes on a private c
   (``failed on rank R`` with that rank's traceback), and all ranks go on with the next test;
 - a rank that failed waits at most ``PARJAM_MPI_TEST_TIMEOUT`` seconds (default 120) for the
   others; if they do not arrive (stuck in a collective of the failed test) it prints which test
-  failed where and calls MPI Abort, which ends the whole job at once instead of hanging.
+  failed where and calls MPI Abort, which ends the whole job at once instead of hanging;
+- a rank that passed waits at most 4 such timeouts (a rank that failed may be stuck in a
+  collective the others left, e.g. while hypothesis shrinks its failure), then aborts the same way.
 """
 
 import os
@@ -22,6 +24,7 @@ import time
 import pytest
 
 DEFAULT_TIMEOUT = 120.0
+PASSED_FACTOR = 4  # a rank that passed waits this many timeouts for the others before aborting
 
 
 class CollectiveOutcome:
@@ -46,20 +49,21 @@ class CollectiveOutcome:
 
     def check(self, item):
         import numpy as np
-        from mpi4py import MPI
 
         mine = np.array([1 if self.failures else 0], dtype=np.int32)
         flags = np.zeros(self.size, dtype=np.int32)
         req = self.comm.Iallgather(mine, flags)
         start = time.monotonic()
         while not req.Test():
-            if mine[0] and time.monotonic() - start > self.timeout:
-                sys.stderr.write(
-                    f"mpi_pytest: {item.nodeid} failed on rank {self.rank} and the other ranks "
-                    f"did not finish it within {self.timeout:g} s (stuck in one of its "
-                    f"collectives?): aborting every rank.\n{self.failures[0]}\n")
-                sys.stderr.flush()
-                MPI.COMM_WORLD.Abort(1)
+            waited = time.monotonic() - start
+            if mine[0] and waited > self.timeout:
+                self._abort(item, f"failed on rank {self.rank} and the other ranks did not "
+                            f"finish it within {self.timeout:g} s (stuck in one of its "
+                            f"collectives?)", self.failures[0])
+            if waited > PASSED_FACTOR * self.timeout:  # e.g. another rank failed and is stuck
+                self._abort(item, f"finished on rank {self.rank}, but the other ranks did not "
+                            f"finish it within {PASSED_FACTOR * self.timeout:g} s (one of them "
+                            f"stuck after a failure of its own?)", "")
             time.sleep(0.002)
         if not flags.any():
             return
@@ -70,6 +74,14 @@ class CollectiveOutcome:
             if flags[r]:
                 self._report(item, f"failed on rank {r} (rank 0: "
                              f"{'failed too' if flags[0] else 'passed'}):\n{texts[r]}")
+
+    @staticmethod
+    def _abort(item, why, detail):
+        from mpi4py import MPI
+
+        sys.stderr.write(f"mpi_pytest: {item.nodeid} {why}: aborting every rank.\n{detail}\n")
+        sys.stderr.flush()
+        MPI.COMM_WORLD.Abort(1)
 
     @staticmethod
     def _report(item, text):
