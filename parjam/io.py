@@ -76,8 +76,9 @@ def provenance(comm_size, extra=None):
     return prov
 
 
-def write_packing(path, pack, net, parameters, prov=None):
-    """One packing and its contact network (H5MD layout; see docs/file-format.md)."""
+def write_packing(path, pack, net, parameters, prov=None, observables=None):
+    """One packing and its contact network (H5MD layout; see docs/file-format.md); extra
+    ``observables`` (name: value) go to /observables beside the network's."""
     with atomic_h5(path) as f:
         write_h5md_header(f, prov)
         part = f.create_group("particles/all")
@@ -97,6 +98,8 @@ def write_packing(path, pack, net, parameters, prov=None):
         for key, val in net.summary().items():
             obs.create_dataset(key, data=val)
         obs.create_dataset("stress_tensor", data=net.stress)
+        for key, val in (observables or {}).items():
+            obs.create_dataset(key, data=val)
         par = f.create_group("parameters")
         par.attrs["alpha"] = pack.alpha
         par.attrs["epsilon"] = pack.eps
