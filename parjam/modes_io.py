@@ -36,6 +36,7 @@ def mode_attrs(spec, system, packing_path, ranks):
         "n_requested": spec.n_requested, "n_accepted": len(spec.eigenvalue),
         "n_rejected": len(spec.rejected_eigenvalue), "complete": bool(spec.complete),
         "n_negative": spec.n_negative, "unstable": bool(spec.unstable),
+        "n_zero_modes": spec.n_zero, "n_translations": system.d,
         "translations_deflated": True, "rattlers_removed": True, "n_active": system.n,
         "n_rattlers": system.n_rattlers, "dimension": system.d, "n_contacts": len(system.r),
         "n_modes_total": system.n_modes, "alpha": system.alpha, "pressure": system.pressure,

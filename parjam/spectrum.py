@@ -88,7 +88,8 @@ def active_system(pack, net=None):
     if net.n_contacts < net.n_iso:
         raise UnjammedError(f"unjammed packing: Nc = {net.n_contacts} contacts among "
                             f"N' = {net.n_active} non-rattlers, fewer than the isostatic "
-                            f"Nc_iso = {net.n_iso}: it has floppy modes")
+                            f"Nc_iso = {net.n_iso}: at least {net.n_iso - net.n_contacts} "
+                            f"floppy mode(s) beyond the {pack.d} translations")
     keep = ~net.rattler
     index = np.cumsum(keep) - 1
     c = net.contacts
@@ -170,6 +171,17 @@ class Spectrum:
     def n_negative(self):
         """Eigenvalues below -zero_tol (beyond round-off), from the inertia when known."""
         return max(int(np.sum(self.eigenvalue < -self.zero_tol)), self.n_unstable)
+
+    @property
+    def n_zero(self):
+        """Accepted eigenvalues inside the zero cluster |lambda| <= zero_tol: floppy modes beyond
+        the d deflated translations (a hypostatic network), never physical vibrations."""
+        return int(np.sum(np.abs(self.eigenvalue) <= self.zero_tol))
+
+    @property
+    def physical(self):
+        """Mask of the accepted eigenvalues above the zero cluster (vibrations)."""
+        return self.eigenvalue > self.zero_tol
 
     @property
     def unstable(self):
@@ -449,6 +461,10 @@ def slepc_modes(comm, A, system, kind, method, k, window, tol, target, want_vect
     with _OptionDefaults(MUMPS_DEFAULTS):
         if method == "sinvert":
             target = -zero_tol if target is None else float(target)
+            if abs(target) < zero_tol:  # D - target I singular beyond the deflated translations
+                raise ParjamError(f"--target {target:g} lies inside the zero cluster |lambda| < "
+                                  f"{zero_tol:.2e}, where the shifted matrix is singular for a "
+                                  f"floppy network: use a target <= {-zero_tol:.2e} (the default)")
             deflation = translation_vecs(A, system.d)
             M = A.convert("sbaij")  # MUMPS reports the inertia of SBAIJ factors only
             eps = sinvert_eps(M, k, target, abstol, deflation)

@@ -46,7 +46,9 @@ def ensemble(specs, bins, log, omega_min, plateau):
     kinds = {s["attrs"]["matrix"] for s in specs}
     if len(kinds) != 1:
         raise ParjamError(f"spectrum files mix matrices {sorted(kinds)}: average one kind")
-    omegas = [s["frequency"][s["frequency"] > 0] for s in specs]
+    # vibrations only: zero modes (floppy, |lambda| <= zero_tol) and unstable ones left out
+    omegas = [s["frequency"][s["eigenvalue"] > float(s["attrs"].get("zero_tol", 0.0))]
+              for s in specs]
     if any(len(w) == 0 for w in omegas):
         raise ParjamError("a spectrum file holds no positive frequency")
     top = min(float(w.max()) for w in omegas)

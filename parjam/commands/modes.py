@@ -132,9 +132,9 @@ def run(args):
 def dos_or_none(spec, system, args):
     from parjam import modes_io
 
-    if not np.any(spec.frequency > 0):
+    if not np.any(spec.physical):  # zero modes (floppy) are no vibrations: not in D(omega)
         return None
-    return modes_io.dos_record(spec.frequency, system.n_modes, args.bins, args.log_bins,
+    return modes_io.dos_record(spec.frequency[spec.physical], system.n_modes, args.bins, args.log_bins,
                                args.omega_min, args.plateau_pair)
 
 
@@ -156,6 +156,11 @@ def report_problems(kind, spec):
               f"rejected (stored under /modes/rejected), "
               f"{max(spec.n_missing - len(spec.rejected_eigenvalue), 0)} not converged",
               file=sys.stderr, flush=True)
+    if spec.n_zero and kind != "stress":
+        print(f"parjam: warning: {kind}: {spec.n_zero} zero mode(s) (|lambda| <= "
+              f"{spec.zero_tol:.1e}) beyond the deflated translations: a floppy "
+              f"(hypostatic) network; they are counted in /modes n_zero_modes and left out of "
+              f"D(omega)", file=sys.stderr, flush=True)
     if spec.unstable:
         print(f"parjam: warning: {kind}: unstable packing: {spec.n_negative} eigenvalue(s) "
               f"below -{spec.zero_tol:.1e} (beyond round-off)", file=sys.stderr, flush=True)
