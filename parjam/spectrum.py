@@ -32,9 +32,10 @@ from parjam.errors import ParjamError, UnjammedError
 METHODS = ("auto", "dense", "sinvert", "slice")
 MATRICES = hessian.KINDS
 DENSE_MAX_DOF = 3000  # auto: dense LAPACK up to this many degrees of freedom d N'
-# auto with --k (measured, docs/speed-accuracy.md): sinvert was 2x (759 dof) to 30x (3066 dof)
-# faster than dense for k <= 10 % of the modes and tied at 375 dof; dense won from about 15-20 %
-# of the modes on (1.6x at a third); dense reaches residuals ~1e-15, sinvert ~1e-12 at --tol 1e-10
+# auto with --k (measured, docs/speed-accuracy.md): from 759 dof on sinvert was faster than dense
+# for k <= 10 % of the modes (1.3x at 10 %, 30x for k = 10 at 3066 dof) and tied at 375 dof;
+# dense won from about 15-20 % of the modes on (1.6x at a third); dense reaches residuals
+# ~1e-15, sinvert ~1e-12 at --tol 1e-10
 DENSE_SMALL_DOF = 400  # auto --k: dense below this many dof whatever k
 DENSE_FRACTION = 0.15  # auto --k: dense (up to DENSE_MAX_DOF) when k >= this fraction of modes
 DENSE_TOL = 1e-12  # auto --k: dense (up to DENSE_MAX_DOF) when --tol is tighter than this

@@ -21,7 +21,7 @@
 set -uo pipefail
 
 stages_file=${1:?usage: run_stages.sh STAGES_FILE}
-: "${LAUNCH:?set LAUNCH, e.g. 'srun' or 'mpirun -n 64'}"
+: "${LAUNCH?set LAUNCH, e.g. 'srun' or 'mpirun -n 64' (empty: serial)}"
 : "${OUT:?set OUT to a scratch directory}"
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 root=$(cd "$here/../.." && pwd)
