@@ -108,11 +108,43 @@ def _linear_solver(ff, H):
     return ksp
 
 
+def _negative_pivots(ksp):
+    """Number of negative pivots of the LDL^T factorisation (MUMPS INFOG(12)): the count of
+    negative eigenvalues of the factorised matrix, by Sylvester's law of inertia; None when the
+    factorisation is not MUMPS."""
+    pc = ksp.getPC()
+    if pc.getType() != "cholesky" or pc.getFactorSolverType() != "mumps":
+        return None
+    return int(pc.getFactorMatrix().getMumpsInfog(12))
+
+
+def _factor(ff, mu):
+    """Factorise H + mu I (kept on ff); returns its number of negative pivots (None: unknown)."""
+    ksp = _linear_solver(ff, ff.hessian(shift=mu))
+    _mumps_counts_inertia(ksp, ff.comm.getSize())
+    ksp.setUp()
+    return _negative_pivots(ksp)
+
+
+def _mumps_counts_inertia(ksp, size):
+    """On several ranks MUMPS factorises the root front with ScaLAPACK, which does not count
+    negative pivots; ICNTL(13) = 1 keeps the root sequential so that INFOG(12) is exact."""
+    pc = ksp.getPC()
+    if size > 1 and pc.getType() == "cholesky" and pc.getFactorSolverType() == "mumps":
+        pc.setFactorSetUpSolverType()
+        pc.getFactorMatrix().setMumpsIcntl(13, 1)
+
+
 def _remove_translations(ff, vec):
     """Subtract the mean displacement/force per Cartesian direction (the d zero modes)."""
     loc = ff.local(vec)
     mean = ff.mpi.allreduce(loc.sum(axis=0)) / ff.n
     loc -= mean
+
+
+def _newton_shift(fmax):
+    """Levenberg-Marquardt shift ~ max|F|; the floor keeps rattler zero modes bounded."""
+    return min(1e-2, max(fmax, 1e-10))
 
 
 def newton(ff, ftol, max_steps=60, progress=None):
@@ -132,9 +164,13 @@ def newton(ff, ftol, max_steps=60, progress=None):
         if fmax <= tight:
             status = "converged"
             break
-        mu = mu_scale * min(1e-2, max(fmax, 1e-10))  # floor: rattler zero modes stay bounded
-        H = ff.hessian(shift=mu)
-        ksp = _linear_solver(ff, H)
+        mu = mu_scale * _newton_shift(fmax)
+        if _factor(ff, mu):
+            # H + mu I is indefinite: not yet in the basin of a minimum (a saddle region, the
+            # contact network still rearranging), where Newton steps wander; FIRE goes on
+            status = "saddle"
+            break
+        ksp = ff.newton_ksp
         _remove_translations(ff, f)
         ksp.solve(f, dx)
         _remove_translations(ff, dx)
@@ -173,34 +209,37 @@ def newton(ff, ftol, max_steps=60, progress=None):
     return MinResult(status, energy, fmax, newton_steps=step)
 
 
-def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_params=None):
+def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_params=None,
+             attempts=8):
     """FIRE until max|F| < fire_rel * (mean contact force), then Newton to ftol.
 
     Returns "unjammed" as soon as the energy drops below ``e_stop`` (useful in the phi_c
-    bisection: the energy only decreases during minimisation).  Where Newton stalls (a contact
-    network still rearranging, near jamming) FIRE takes over with a tighter tolerance, aiming a
-    decade below ftol so that the result does not sit on the edge of the tolerance.
+    bisection: the energy only decreases during minimisation).  Newton starts only where the
+    Hessian is positive definite (the basin of a minimum): in a saddle region, or where Newton
+    stalls (a contact network still rearranging, near jamming), FIRE goes on to a tolerance ten
+    times tighter and Newton is tried again.
     """
     params = fire_params or FireParams()
     res = fire(ff, max(ftol, fire_rel * _force_scale(ff)), e_stop, params, progress)
+    total = MinResult(res.status, res.energy, res.fmax, res.fire_steps, 0)
     if res.status == "unjammed" or res.fmax <= ftol:
-        return res
-    for attempt in range(3):
+        return total
+    for _ in range(attempts):
         nres = newton(ff, ftol, progress=progress)
-        nres.fire_steps = res.fire_steps
+        total.newton_steps += nres.newton_steps
+        total.energy, total.fmax, total.status = nres.energy, nres.fmax, nres.status
         if nres.ok or nres.energy < e_stop:
-            if nres.energy < e_stop:
-                nres.status = "unjammed"
-            return nres
-        fire_rel *= 1e-2
-        target = max(0.1 * ftol, fire_rel * _force_scale(ff))
-        more = fire(ff, target, e_stop, params, progress)
-        res = MinResult(more.status, more.energy, more.fmax, res.fire_steps + more.fire_steps,
-                        nres.newton_steps)
+            total.status = "unjammed" if nres.energy < e_stop else "converged"
+            return total
+        fire_rel *= 0.1
+        more = fire(ff, max(0.1 * ftol, fire_rel * _force_scale(ff)), e_stop, params, progress)
+        total.fire_steps += more.fire_steps
+        total.energy, total.fmax, total.status = more.energy, more.fmax, more.status
         if more.status == "unjammed" or more.fmax <= ftol:
-            res.status = "unjammed" if more.status == "unjammed" else "converged"
-            return res
-    return nres
+            total.status = "unjammed" if more.status == "unjammed" else "converged"
+            return total
+    total.status = "not converged"
+    return total
 
 
 def _force_scale(ff):

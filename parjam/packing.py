@@ -74,6 +74,7 @@ class JamSettings:
     first_step: float = 2e-3  # compression step while unjammed (doubles each time)
     max_iter: int = 200
     ptol: float = 1e-6  # relative tolerance of a target pressure
+    fire_rel: float = 1e-4  # FIRE hands over to Newton at max|F| < fire_rel * mean contact force
 
 
 @dataclass
@@ -110,7 +111,8 @@ class Jammer:
             self.ff.set_box(self.pack.L)
             self.ff.set_positions(self.pack.pos)
         try:
-            res = minimize.minimise(self.ff, self.settings.ftol, e_stop)
+            res = minimize.minimise(self.ff, self.settings.ftol, e_stop,
+                                   fire_rel=self.settings.fire_rel)
         except ValueError as exc:  # e.g. a box too small for the neighbour search
             raise ParjamError(f"at phi = {self.pack.phi:.10f}: {exc}", collective=False) from None
         self.total_fire += res.fire_steps
