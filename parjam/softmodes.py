@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, hessian, potential
+from parjam import env, hessian, potential, spectrum
 from parjam.errors import ParjamError
 from parjam.network import Contacts, analyze
 
@@ -378,13 +378,7 @@ def _configure_eps(eps, M, d, nev, scale, prefix, tol):
     eps.setTarget(-1e-8 * scale)
     eps.setConvergenceTest(SLEPc.EPS.Conv.ABS)
     eps.setTolerances(tol * scale, 1000)
-    st = eps.getST()
-    st.setType("sinvert")
-    ksp = st.getKSP()
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("cholesky")
-    pc.setFactorSolverType("mumps")
+    spectrum.configure_sinvert(eps)
     eps.setDeflationSpace(translations(M, d))
     eps.setOptionsPrefix(prefix)
     eps.setFromOptions()

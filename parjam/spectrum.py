@@ -381,7 +381,7 @@ class _OptionDefaults:
             opts.delValue(name)
 
 
-def _configure_st(eps):
+def configure_sinvert(eps):
     """Shift-and-invert with a direct MUMPS Cholesky (LDL^T) factorisation, no Krylov solve."""
     st = eps.getST()
     st.setType("sinvert")
@@ -408,7 +408,7 @@ def sinvert_eps(A, k, target, abstol, deflation):
     eps.setConvergenceTest(SLEPc.EPS.Conv.ABS)
     eps.setTolerances(tol=abstol)
     eps.setDeflationSpace(deflation)
-    _configure_st(eps)
+    configure_sinvert(eps)
     eps.setOptionsPrefix(PREFIX)
     eps.setFromOptions()
     return eps
@@ -425,7 +425,7 @@ def slice_eps(S, interval, abstol):
     eps.setWhichEigenpairs(SLEPc.EPS.Which.ALL)
     eps.setConvergenceTest(SLEPc.EPS.Conv.ABS)
     eps.setTolerances(tol=abstol)
-    _configure_st(eps)
+    configure_sinvert(eps)
     eps.setOptionsPrefix(PREFIX)
     eps.setFromOptions()
     return eps
