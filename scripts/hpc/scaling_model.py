@@ -44,7 +44,25 @@ def powerfit(x, y):
     return float(np.exp(logc)), float(e)
 
 
+PHASES = ("neighbours_s", "force_s", "assembly_s", "factor_s", "solve_s", "matvec_s")
+
+
+def best(records):
+    """One record per (N, ranks): the fastest of repeated runs, phase by phase (the machine's
+    load only ever adds time)."""
+    out = {}
+    for r in records:
+        key = (r["N"], r["ranks"])
+        if key not in out:
+            out[key] = dict(r)
+        else:
+            for ph in PHASES:
+                out[key][ph] = min(out[key][ph], r[ph])
+    return [out[k] for k in sorted(out)]
+
+
 def fit(records):
+    records = best(records)
     one = sorted([r for r in records if r["ranks"] == 1], key=lambda r: r["N"])
     two = {r["N"]: r for r in records if r["ranks"] == 2}
     N = np.array([r["N"] for r in one], dtype=float)
@@ -110,10 +128,11 @@ def hms(s):
 
 
 def tables(m, records):
-    out = [BEGIN, "", "### Measured (profile_phases.py; per call, seconds)", "",
+    out = [BEGIN, "", "### Measured (profile_phases.py; seconds per call, fastest of "
+           f"{len(records)} runs over {len(best(records))} (N, ranks) pairs)", "",
            "| N | N' | dof | ranks | neighbours | force | assembly | factor | solve | matvec | "
            "MUMPS entries | MUMPS Gflop | ordering |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in sorted(records, key=lambda r: (r["N"], r["ranks"])):
+    for r in best(records):
         out.append(f"| {r['N']} | {r['N_active']} | {r['dof']} | {r['ranks']} | "
                    f"{r['neighbours_s']:.3g} | {r['force_s']:.3g} | {r['assembly_s']:.3g} | "
                    f"{r['factor_s']:.3g} | {r['solve_s']:.3g} | {r['matvec_s']:.3g} | "
