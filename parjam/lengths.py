@@ -381,7 +381,7 @@ def default_k_max(pack):
     return float(np.pi / np.mean(pack.diam))
 
 
-def fit_structure(sf, speeds, w_star, k_fit, smooth):
+def fit_structure(sf, w_star, k_fit, smooth):
     """Peaks, dispersion slopes over k <= k_fit, and l_T = 1 / k* where the transverse peak
     reaches omega* (NaN if it never does in the computed range)."""
     from parjam import structure
@@ -404,7 +404,7 @@ def compute(comm, pack, what=("speeds", "omega"), matrix="full", k=None, method=
             progress=None):
     """Compute only the parts in ``what`` (subset of WHAT) for one packing on ``comm``."""
     from parjam import moduli as moduli_mod
-    from parjam import spectrum, structure
+    from parjam import spectrum
     from parjam.network import analyze
 
     bad = set(what) - set(WHAT)
@@ -424,9 +424,9 @@ def compute(comm, pack, what=("speeds", "omega"), matrix="full", k=None, method=
         system = spectrum.active_system(pack, net)
         kk = k if k is not None else system.n_modes
         if k is None and method != "dense" and system.dof > spectrum.DENSE_MAX_DOF:
-            raise ParjamError(f"{system.dof} degrees of freedom: the complete spectrum is too "
-                              "large for the automatic choice: give --k (the lowest modes; omega* then "
-                              "needs the plateau within them, see --plateau) or --method dense")
+            raise ParjamError(f"{system.dof} degrees of freedom: too many for the automatic "
+                              "complete spectrum: give --k (the lowest modes; omega* then needs "
+                              "the plateau within them, see --plateau) or --method dense")
         log(f"spectrum: {kk} lowest modes of the {matrix} matrix")
         spec = spectrum.compute(comm, system, matrix, k=kk, method=method,
                                 vectors="structure" in what, progress=log)
@@ -458,7 +458,7 @@ def structure_part(comm, pack, net, res, k_max, k_fit, smooth, log):
             pos = np.mod(pack.pos[~net.rattler], pack.L)
             log(f"structure factors: {len(spec.eigenvalue)} modes, k <= {k_max:.3g}")
             sf = structure.compute(spec.vectors, spec.frequency, pos, pack.L, k_max)
-            fit, pL, pT = fit_structure(sf, res.speeds, res.omega_star, k_fit, smooth)
+            fit, pL, pT = fit_structure(sf, res.omega_star, k_fit, smooth)
             fit["peak_L"], fit["peak_T"] = pL, pT
             payload = (sf, fit)
         except ParjamError as exc:

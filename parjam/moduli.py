@@ -155,12 +155,16 @@ def min_shear_modulus(Bt):
 
 def power_law_fit(x, Y, n_boot=500, seed=0):
     """Exponent of mean(Y, members) ~ x^s by least squares in log-log, with a bootstrap error
-    over members (rows of Y).  Returns (s, standard error); nan if a mean is not positive."""
+    over members (rows of Y).  Returns (s, standard error); nan if a mean is not positive.
+    NaN entries (members left out at some x, e.g. unstable ones) are skipped in the means."""
     Y = np.asarray(Y, dtype=float)
     lx = np.log(np.asarray(x, dtype=float))
 
     def slope(rows):
-        m = Y[rows].mean(axis=0)
+        with np.errstate(all="ignore"):
+            m = np.nanmean(Y[rows], axis=0) if np.isnan(Y).any() else Y[rows].mean(axis=0)
+        if not np.isfinite(m).all():
+            return np.nan
         return np.polyfit(lx, np.log(m), 1)[0] if (m > 0).all() else np.nan
 
     rng = np.random.default_rng(seed)

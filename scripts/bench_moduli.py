@@ -6,7 +6,8 @@ same run.  Run by hand, never in the test suite:
 
     source scripts/mpi-env
     nice -n 10 .venv/bin/python scripts/bench_moduli.py \
-        --packings bench-out/n4096q/member0000_phi0.6600.h5 bench-out/n8192q/member0000_phi0.6600.h5 \
+        --packings bench-out/n4096q/member0000_phi0.6600.h5 \
+                   bench-out/n8192q/member0000_phi0.6600.h5 \
         [--ranks 1 2] [--iterative gamg hypre] [--out docs/bench-moduli.md]
 
 Each (packing, ranks, preconditioner) is a separate ``mpirun`` of this script in worker mode;
