@@ -81,7 +81,7 @@ FACTORS = {  # name: (matrix type, PC type, package, extra options)
 }
 
 
-def run_sinvert(system, k, tol, ncv=None, factor="mumps-cholesky"):
+def run_sinvert(system, k, tol, ncv=None, factor="mumps-cholesky", mpd=None):
     from parjam import env, spectrum
 
     PETSc, SLEPc = env.petsc(), env.slepc()
@@ -91,6 +91,8 @@ def run_sinvert(system, k, tol, ncv=None, factor="mumps-cholesky"):
     values = {"st_pc_type": pctype, "st_pc_factor_mat_solver_type": pkg, **extra}
     if ncv:
         values["eps_ncv"] = str(ncv)
+    if mpd:
+        values["eps_mpd"] = str(mpd)
     for key, val in values.items():
         opts.setValue(spectrum.PREFIX + key, val)
     A = spectrum.dynamical_matrix(comm, system, "full")
@@ -154,7 +156,7 @@ def best_of(repeat, fn):
     return min(runs, key=lambda r: r[2])
 
 
-def stage_eig(paths, k, cache_dir, log, repeat=2):
+def stage_eig(paths, k, cache_dir, log, repeat=2, knobs=("tol", "ncv", "factor", "mpd", "peer")):
     rows = []
     for path in paths:
         system = load(path)
@@ -167,15 +169,23 @@ def stage_eig(paths, k, cache_dir, log, repeat=2):
         grid = ([("tol", tol, dict(tol=tol)) for tol in (1e-4, 1e-6, 1e-8, 1e-10, 1e-12)]
                 + [("ncv", ncv, dict(tol=1e-10, ncv=ncv)) for ncv in
                    (k + 10, k + k // 2, 2 * k, 3 * k)]
-                + [("factor", f, dict(tol=1e-10, factor=f)) for f in FACTORS])
+                + [("factor", f, dict(tol=1e-10, factor=f)) for f in FACTORS]
+                # mpd bounds the projected problem when k is large: 4k modes, ncv = 4k + mpd
+                + [("mpd", f"{mpd} (k={4 * k})",
+                    dict(tol=1e-10, mpd=mpd, ncv=4 * k + mpd, kk=4 * k)) for mpd in (k, 2 * k)]
+                + [("mpd", f"none, ncv {6 * k} (k={4 * k})", dict(tol=1e-10, kk=4 * k))])
         for knob, value, kw in grid:
+            if knob not in knobs:
+                continue
+            kk = kw.pop("kk", k)
+            ref = truth[:kk]
             try:
-                lam, res, sec, info = best_of(repeat, lambda: run_sinvert(system, k, **kw))
+                lam, res, sec, info = best_of(repeat, lambda: run_sinvert(system, kk, **kw))
             except Exception as exc:  # a package missing or failing: recorded, not fatal
                 rows.append({"N": system.n, "knob": knob, "value": value, "error": str(exc)})
                 log(f"eig: {knob}={value}: failed ({str(exc).splitlines()[-1]})")
                 continue
-            m = min(len(lam), k)
+            m = min(len(lam), kk)
             err = float(np.max(np.abs(lam[:m] / ref[:m] - 1))) if m else float("nan")
             abs_err = float(np.max(np.abs(lam[:m] - ref[:m]))) / norm if m else float("nan")
             rows.append({"N": system.n, "dof": system.dof, "knob": knob, "value": value,
@@ -185,6 +195,9 @@ def stage_eig(paths, k, cache_dir, log, repeat=2):
                          "dense_seconds": t_dense, **info})
             log(f"eig: {knob}={value}: {sec:.2f} s, residual {rows[-1]['max_residual']:.1e}, "
                 f"error {err:.1e}")
+        if "peer" not in knobs:
+            continue
+        ref = truth[:k]
         lam, sec, res = min((run_scipy_eigsh(system, k) for _ in range(repeat)),
                             key=lambda r: r[1])
         rows.append({"N": system.n, "dof": system.dof, "knob": "peer", "value": "scipy eigsh",
@@ -378,6 +391,8 @@ def main():
     ap.add_argument("--eig", nargs="*", default=[], help="packings for the eigensolver knobs")
     ap.add_argument("--k", type=int, default=50)
     ap.add_argument("--repeat", type=int, default=2, help="eig: best of this many runs")
+    ap.add_argument("--knobs", nargs="+", default=["tol", "ncv", "factor", "mpd", "peer"],
+                    help="eig: which knobs to vary")
     ap.add_argument("--dos", nargs="*", default=[], help="packings for D(omega)")
     ap.add_argument("--moments", type=int, nargs="+", default=[64, 128, 256, 512, 1024])
     ap.add_argument("--probes", type=int, nargs="+", default=[2, 8, 32])
@@ -416,7 +431,7 @@ def main():
             json.dump(out, f, indent=1, default=float)
 
     if args.eig:
-        out["eig"] = stage_eig(args.eig, args.k, args.cache, log, args.repeat)
+        out["eig"] = stage_eig(args.eig, args.k, args.cache, log, args.repeat, args.knobs)
         save()
     if args.dos:
         out["dos"] = stage_dos(args.dos, args.moments, args.probes, args.cache, log)
@@ -427,10 +442,11 @@ def main():
     if args.ftol_phic:
         out["ftol"] = stage_ftol(args.ftol_phic, args.dphis, args.ftols, 20, log)
         save()
-    for path in args.merge:
+    for path in args.merge:  # stages of earlier runs; rows of a stage run twice are joined
         with open(path) as f:
-            out.update({key: val for key, val in json.load(f).items()
-                        if key in ("eig", "dos", "ftol", "auto") and key not in out})
+            for key, val in json.load(f).items():
+                if key in ("eig", "dos", "ftol", "auto"):
+                    out[key] = out.get(key, []) + [r for r in val if r not in out.get(key, [])]
     save()
     if args.md:
         report(out, args.md, args.img)
@@ -477,7 +493,7 @@ def eig_section(rows, img):
                      f"{fmt(r['max_rel_error'], '.1e')} | {fmt(r.get('factor_entries'), 'd')} |")
     sizes = sorted({r["N"] for r in rows})
     fig, axes = plt.subplots(1, len(sizes), figsize=(5.5 * len(sizes), 4.2), squeeze=False)
-    marks = {"tol": "o", "ncv": "s", "factor": "^", "peer": "*"}
+    marks = {"tol": "o", "ncv": "s", "factor": "^", "mpd": "D", "peer": "*"}
     for ax, n in zip(axes[0], sizes):
         sub = [r for r in rows if r["N"] == n and "error" not in r]
         for knob, mk in marks.items():
