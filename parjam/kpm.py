@@ -7,8 +7,8 @@ at the cost of (moments / 2) products per probe vector and no factorisation.
 
 1. Bounds [a, b] of the spectrum: b from a short Lanczos run (the top Ritz value plus its
    residual and a margin), capped by ||A||_inf (Gershgorin); a = -margin * b for the full and
-   relaxed matrices (positive semi-definite for a stable packing), from Lanczos for the stress
-   term.  A~ = (A - c) / h with c = (a + b) / 2, h = (b - a) / 2 has its spectrum in [-1, 1].
+   relaxed matrices (positive semi-definite for a stable packing; lower if Lanczos finds a
+   negative Ritz value), from Lanczos for the stress term.  A~ = (A - c) / h with c = (a + b) / 2, h = (b - a) / 2 has its spectrum in [-1, 1].
 2. Chebyshev moments (RMP Eq. 71, 74)  mu_n = tr(P T_n(A~)) / (d N' - d), P the projector off
    the d uniform translations (exact zero modes of the periodic box): each probe r = P z,
    z with i.i.d. +-1 (default) or Gaussian entries, gives r^T T_n(A~) r, whose mean over z is
@@ -119,6 +119,7 @@ def spectral_bounds(A, d, kind, seed, steps=40, margin=1e-3):
     """[a, b] enclosing the spectrum of A (see the module doc), and a record of how."""
     PETSc = env.petsc()
     norm = A.norm(PETSc.NormType.INFINITY)  # Gershgorin: |lambda| <= ||A||_inf
+    unstable = False
     v = A.createVecRight()
     fill_probe(v, seed, 0, "gaussian", stream=1)
     project_translations(v, d)
@@ -127,12 +128,16 @@ def spectral_bounds(A, d, kind, seed, steps=40, margin=1e-3):
     b = min(norm, tmax + max(rmax, 0.01 * abs(tmax)))
     if kind in SEMIDEFINITE:
         a = -margin * b
+        if tmin < a:  # an unstable packing: Lanczos found a negative eigenvalue, enclose it
+            a = max(-norm, tmin - max(rmin, 0.01 * abs(tmin))) - margin * b
+            unstable = True
     else:
         a = max(-norm, tmin - max(rmin, 0.01 * abs(tmin)))
         span = b - a
         a, b = a - margin * span, b + margin * span
     return a, b, {"norm_inf": norm, "lanczos_steps": steps, "ritz_max": tmax,
-                  "ritz_max_residual": rmax, "ritz_min": tmin, "ritz_min_residual": rmin}
+                  "ritz_max_residual": rmax, "ritz_min": tmin, "ritz_min_residual": rmin,
+                  "negative_ritz": unstable}
 
 
 # --- Chebyshev moments ---------------------------------------------------------------------------
@@ -215,12 +220,19 @@ class KPMResult:
         w = np.asarray(omega, dtype=float)
         return 2.0 * w * self.density_lambda(w * w, mu)
 
+    @property
+    def fold_below_zero(self):
+        """The weight below lambda = 0 is the kernel's smearing of the lowest modes (counted in
+        the lowest bin) unless the matrix may be indefinite (stress term, or a negative Ritz
+        value: an unstable packing, whose negative modes are then left out of D(omega))."""
+        return self.matrix in SEMIDEFINITE and not self.info.get("negative_ritz", False)
+
     def binned(self, edges, mu=None):
         """D(omega) per mode on omega bins: (F(w2^2) - F(w1^2)) / (w2 - w1); the smeared weight
-        below lambda = 0 goes to a bin starting at omega = 0."""
+        below lambda = 0 goes to a bin starting at omega = 0 (see fold_below_zero)."""
         e = np.asarray(edges, dtype=float)
         F = self.cumulative(e * e, mu)
-        if e[0] == 0.0:
+        if e[0] == 0.0 and self.fold_below_zero:
             F[0] = 0.0
         return np.diff(F) / np.diff(e)
 

@@ -96,6 +96,24 @@ def test_jacobian_on_the_ring_spectrum():
     assert abs(res.b - 4.0) < 0.05  # Lanczos bound close to lambda_max = 4
 
 
+def test_negative_eigenvalues_are_enclosed():
+    """An unstable matrix (the ring shifted by -1/2: lambda = 4 sin^2(pi k/n) - 1/2): the
+    Lanczos bounds enclose the negative part, and F(0) is the exact fraction below zero."""
+    n = 1 << 14
+    i = np.arange(n)
+    A = hessian.assemble(WORLD, n, 1, i, (i + 1) % n, np.ones((n, 1, 1)), shift=-0.5)
+    try:
+        res = kpm.moments(A, 1, n - 1, "full", 256, 8, seed=4)
+    finally:
+        A.destroy()
+    assert -0.6 < res.a < -0.5
+    exact = 2.0 / np.pi * np.arcsin(np.sqrt(0.5) / 2.0)  # fraction with 4 sin^2 < 1/2
+    assert abs(res.cumulative(0.0) - exact) < 0.01
+    assert not res.fold_below_zero  # the negative modes are not binned as vibrations
+    edges = np.linspace(0.0, 1.8, 10)
+    assert abs(np.sum(res.binned(edges) * np.diff(edges)) - (res.cumulative(3.24) - exact)) < 0.01
+
+
 def test_probes_do_not_depend_on_the_layout():
     whole = kpm.probe_values(7, 3, 0, 3 * kpm.CHUNK // 2)
     parts = [kpm.probe_values(7, 3, lo, hi) for lo, hi in
