@@ -1,6 +1,7 @@
 """``parjam dos``: ensemble-averaged D(omega), D0 and omega* over spectrum files."""
 
 import os
+import sys
 
 import numpy as np
 
@@ -152,6 +153,11 @@ def run_kpm(args, plateau):
     ws, ws_err = observables.ensemble_mean(stars[:, None])
     if comm.getRank() != 0:
         return 0
+    for path, r in zip(args.spectra, results):
+        if not r.fold_below_zero and r.weight_below_zero > 1e-3:
+            print(f"parjam: warning: {path}: {r.weight_below_zero:.1%} of the modes lie below "
+                  f"lambda = 0 (unstable packing or indefinite matrix): left out of D(omega)",
+                  file=sys.stderr, flush=True)
     centres = (np.sqrt(edges[1:] * edges[:-1]) if args.log_bins
                else 0.5 * (edges[1:] + edges[:-1]))
     dos = {"omega": centres, "edges": edges, "density": mean, "density_error": err,
