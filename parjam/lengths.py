@@ -315,6 +315,7 @@ def lstar(comm, pack, ells, samples=8, seed=0, net=None, progress=None):
 # --------------------------------------------------------------------------- the whole analysis
 
 WHAT = ("speeds", "omega", "lstar", "structure")
+COMPLETE_MAX_DOF = 12000  # without --k: the complete spectrum by dense LAPACK up to this size
 
 
 @dataclass
@@ -423,10 +424,13 @@ def compute(comm, pack, what=("speeds", "omega"), matrix="full", k=None, method=
     if "omega" in what or "structure" in what:
         system = spectrum.active_system(pack, net)
         kk = k if k is not None else system.n_modes
-        if k is None and method != "dense" and system.dof > spectrum.DENSE_MAX_DOF:
-            raise ParjamError(f"{system.dof} degrees of freedom: too many for the automatic "
-                              "complete spectrum: give --k (the lowest modes; omega* then needs "
-                              "the plateau within them, see --plateau) or --method dense")
+        if k is None:  # omega* from the complete spectrum: dense LAPACK
+            if system.dof > COMPLETE_MAX_DOF and method != "dense":
+                raise ParjamError(
+                    f"{system.dof} degrees of freedom: too many for a complete dense spectrum "
+                    f"(limit {COMPLETE_MAX_DOF}): give --k (the lowest modes; omega* then needs "
+                    "the plateau within them, see --plateau) or --method dense")
+            method = "dense"
         log(f"spectrum: {kk} lowest modes of the {matrix} matrix")
         spec = spectrum.compute(comm, system, matrix, k=kk, method=method,
                                 vectors="structure" in what, progress=log)

@@ -26,8 +26,8 @@ def add_parser(sub):
                    help="any of speeds, omega, lstar, structure, all (default: speeds omega)")
     p.add_argument("--matrix", default="full", choices=("full", "relaxed"),
                    help="dynamical matrix for omega* and the structure factors (default full)")
-    p.add_argument("--k", type=int, help="lowest modes to compute (default: all, when d N' <= "
-                   "3000)")
+    p.add_argument("--k", type=int, help="lowest modes to compute (default: all, by dense "
+                   "LAPACK, when d N' <= 12000)")
     p.add_argument("--method", default="auto", choices=("auto", "dense", "sinvert"))
     p.add_argument("--plateau", help="plateau window W1,W2 for D0 and omega*")
     p.add_argument("--edges", help="cube edges for l*, as fractions of L (default "
