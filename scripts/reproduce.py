@@ -291,8 +291,11 @@ def softmodes(plt, systems, img, fits):
     axes[1].loglog(Ls, emax, "s-", label="max trial energy")
     axes[1].loglog(Ls, wl2, "k--", label=r"$\omega_L^2$ (Eq. kkk)")
     if len(Ls) > 1:
-        b = np.polyfit(np.log(Ls), np.log(emean), 1)[0]
-        fits["softmodes/trial_energy_vs_L"] = {"exponent": float(b), "theory": -2.0}
+        ordered = sorted(systems.values(), key=lambda s: s["attrs"]["n"])
+        m = min(len(s["phi_c"]["softmodes"]["L"]) for s in ordered)
+        X = np.array([s["phi_c"]["softmodes"]["L"][:m] for s in ordered]).T
+        Y = np.array([s["phi_c"]["softmodes"]["omega_t2"][:m] for s in ordered]).T
+        fits["softmodes/trial_energy_vs_L"] = {**fit_power(X, Y), "theory": -2.0}
     axes[1].set(xlabel="L", ylabel="energy", title="trial modes vs $\\omega_L^2$")
     axes[1].legend(fontsize=7)
     return save(fig, img, "softmodes")

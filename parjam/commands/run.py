@@ -313,17 +313,20 @@ class Runner:
         self.comm = comm
         stage = PETSc.Log.Stage("parjam run")
         stage.push()
+        stopped = False
         try:
             for st in self.stages:
                 if st.kind == "pack":
                     self.pack_dirs[st.system.name] = self.stage_dir(st)
                 if st.kind == "summary":
+                    # a member's stages all run in the same group, so groups only wait for each
+                    # other here, where the summary reads every member
+                    if self.mpi.allreduce(stopped, op=_lor()):
+                        self.progress("interrupted: re-run the same command to resume")
+                        return EXIT_INTERRUPTED
                     self.summarise(st)
-                    continue
-                stopped = self.run_stage(st, comm, mine)
-                if self.mpi.allreduce(stopped, op=_lor()):
-                    self.progress("interrupted: re-run the same command to resume")
-                    return EXIT_INTERRUPTED
+                elif not stopped:
+                    stopped = self.run_stage(st, comm, mine)
         finally:
             stage.pop()
         if "pictures" in self.scene.observables and self.mpi.Get_rank() == 0:
@@ -337,9 +340,9 @@ class Runner:
         todo = gm.bcast([m for m in mine if not self.member_done(st, m)] if gm.Get_rank() == 0
                         else None, root=0)
         label = f"{st.kind}{' ' + st.matrix if st.matrix else ''} {st.system.name}"
-        skipped = self.mpi.allreduce(len(mine) - len(todo) if gm.Get_rank() == 0 else 0)
-        if skipped:
-            self.progress(f"{label}: {skipped} member(s) already done")
+        if len(todo) < len(mine):
+            self.progress(f"{label}: {len(mine) - len(todo)} member(s) of this rank's group "
+                          f"already done")
         if gm.Get_rank() == 0:
             os.makedirs(self.stage_dir(st), exist_ok=True)
         gm.Barrier()
