@@ -26,13 +26,23 @@ double parjam_pair_forces(int64_t npairs, const int64_t *pi, const int64_t *pj, 
         const int64_t i = pi[p], j = pj[p];
         double dr[3], r2 = 0.0;
         for (int a = 0; a < d; a++) {
-            double x = pos[j * d + a] - pos[i * d + a];
-            /* minimum image (positions are kept near [0, L), so this loops at most once or twice;
-             * the same result as x - L rint(x/L) without a libm call per component) */
-            while (x > 0.5 * L)
-                x -= L;
-            while (x < -0.5 * L)
-                x += L;
+            const double xi = pos[i * d + a], xj = pos[j * d + a];
+            double x = xj - xi;
+            /* minimum image (positions are kept near [0, L), so this loops at most once or twice).
+             * Across the boundary x ~ +-L would round at ulp(L); the particle near L is shifted by
+             * L first (exact for positions in [L/2, 2L]) and the small numbers are subtracted, so
+             * overlaps of 1e-8 keep ~1e-16 absolute precision whatever L (parjam.system). */
+            if (x > 0.5 * L) {
+                double xs = xj - L;
+                while (xs - xi > 0.5 * L)
+                    xs -= L;
+                x = xs - xi;
+            } else if (x < -0.5 * L) {
+                double xs = xi - L;
+                while (xj - xs < -0.5 * L)
+                    xs -= L;
+                x = xj - xs;
+            }
             dr[a] = x;
             r2 += x * x;
         }

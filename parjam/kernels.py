@@ -18,7 +18,7 @@ import tempfile
 import numpy as np
 
 from parjam import potential
-from parjam.system import min_image
+from parjam.system import pair_separation
 
 _SRC = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels.c")
 _lib = None
@@ -90,7 +90,7 @@ def pair_forces(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
 
 
 def _pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
-    rij = min_image(pos[pj] - pos[pi], L)
+    rij = pair_separation(pos[pi], pos[pj], L)
     r = np.sqrt(np.einsum("ij,ij->i", rij, rij))
     sigma = 0.5 * (diam[pi] + diam[pj])
     c = r < sigma
