@@ -33,7 +33,12 @@ at random positions: particles left with fewer than d contacts are removed itera
 removal takes d - z_i trivially localised modes), the rigid motions d(d+1)/2 of every connected
 piece are subtracted, and the null space of the relaxed-spring matrix of what remains is counted
 exactly by MUMPS inertia (parjam.softmodes.null_count).  The measured l* is the edge at which
-half of the cubes have non-trivial soft modes.
+the mean cut-plane count of the real cubes changes sign.  Since floppy clusters along the cut
+faces keep a few soft modes in cubes of any size, the soft modes are also sorted by extension
+as in the paper's Appendix, inside each cube (:func:`extended_soft_count`: G multiplies
+particle i by prod_a sin^2(pi u_a / l), the rigid motions removed first): ``lstar_extended``
+is the edge above which fewer than a quarter of the cubes keep a soft mode with e > e0
+(default 0.4 x 2^-d, 40 % of a uniform mode).
 """
 
 from dataclasses import dataclass, field
@@ -95,6 +100,8 @@ def acoustic_lengths(c_L, c_T, w_star):
 
 # --------------------------------------------------------------------------- l*: cut cubes
 
+EXTENDED_MAX_DOF = 2400  # dense null-space bases of cube cores up to this size
+
 def mean_normal_component(rij):
     """<|r_a|> over contacts and axes: the mean bond length across a plane per unit density."""
     return float(np.abs(rij).mean())
@@ -139,12 +146,14 @@ def prune_underconstrained(n, d, i, j):
         keep &= alive[i] & alive[j]
 
 
-def components(n, i, j):
+def components(n, i, j, labels=False):
+    """Number of connected pieces of the contact graph (and each particle's piece)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
     g = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
-    return connected_components(g, directed=False)[0]
+    count, lab = connected_components(g, directed=False)
+    return (count, lab) if labels else count
 
 
 @dataclass
@@ -159,6 +168,7 @@ class CubeCount:
     pieces: int  # connected pieces of the core
     null: int  # null space of the core's relaxed matrix (rigid motions included; -1: no gap)
     dim: int = 3
+    extended: int = -1  # soft modes with extension e > e0 (-1: not computed)
 
     @property
     def rigid(self):
@@ -182,8 +192,52 @@ class CubeCount:
         return self.dim * self.n - self.nc_in - self.dim * (self.dim + 1) // 2
 
 
-def count_cube(pos, contacts, L, x0, ell, alpha, eps, scale, comm_self):
-    """Soft modes of one cube (see module doc), on a single-rank communicator."""
+def rigid_motions(u, d, labels):
+    """Orthonormal basis (columns, d n rows) of the translations and infinitesimal rotations of
+    every connected piece (``labels``) of particles at positions u."""
+    cols = []
+    pairs = [(0, 1)] if d == 2 else [(0, 1), (0, 2), (1, 2)]
+    for p in np.unique(labels):
+        m = labels == p
+        r = u - u[m].mean(axis=0)
+        for a in range(d):
+            v = np.zeros_like(u)
+            v[m, a] = 1.0
+            cols.append(v.ravel())
+        for a, b in pairs:
+            v = np.zeros_like(u)
+            v[m, a], v[m, b] = -r[m, b], r[m, a]
+            cols.append(v.ravel())
+    q, _ = np.linalg.qr(np.array(cols).T)
+    return q
+
+
+def extended_soft_count(H, u, ell, labels, e0, zero_tol=1e-8):
+    """Soft modes of a cube core that are extended (Appendix of the paper, applied inside the
+    cube): the null space of the dense relaxed matrix H minus the rigid motions of its pieces,
+    and the eigenvalues e of G projected on it, G multiplying particle i by
+    g_i^2 = prod_a sin^2(pi u_a / ell) (u measured from the cube's corner; 2^-d for a uniform
+    mode): the number of e > e0.  Surface-localised floppy clusters have e ~ 0."""
+    import scipy.linalg
+
+    d = u.shape[1]
+    top = np.abs(H).sum(axis=1).max()
+    _, V = scipy.linalg.eigh(H, subset_by_value=(-np.inf, zero_tol * top))
+    R = rigid_motions(u, d, labels)
+    S = V - R @ (R.T @ V)
+    U, sv, _ = np.linalg.svd(S, full_matrices=False)
+    soft = U[:, sv > 1e-6]
+    if soft.shape[1] == 0:
+        return 0
+    g2 = np.repeat(np.prod(np.sin(np.pi * u / ell) ** 2, axis=1), d)
+    e = np.linalg.eigvalsh(soft.T @ (g2[:, None] * soft))
+    return int(np.sum(e > e0))
+
+
+def count_cube(pos, contacts, L, x0, ell, alpha, eps, scale, comm_self, e0=None,
+               max_dof=EXTENDED_MAX_DOF):
+    """Soft modes of one cube (see module doc), on a single-rank communicator; with ``e0`` also
+    the extended ones (dense, cores of at most ``max_dof`` degrees of freedom)."""
     d = pos.shape[1]
     members, kept, idx = cube_network(pos, contacts, L, x0, ell)
     n = len(members)
@@ -199,7 +253,7 @@ def count_cube(pos, contacts, L, x0, ell, alpha, eps, scale, comm_self):
     n_core = int(alive.sum())
     if n_core == 0:
         return CubeCount(ell, n, q, len(kept), 0, 0, trivial, 0, 0, d)
-    pieces = components(n_core, ci, cj)
+    pieces, labels = components(n_core, ci, cj, labels=True)
     blocks = hessian.contact_blocks(kept.rij[ck], kept.r[ck], kept.sigma[ck], alpha, eps,
                                     "relaxed")
     M = hessian.assemble(comm_self, n_core, d, ci, cj, blocks)
@@ -209,8 +263,16 @@ def count_cube(pos, contacts, L, x0, ell, alpha, eps, scale, comm_self):
         null = -1
     finally:
         M.destroy()
-    return CubeCount(ell, n, q, len(kept), n_core, int(ck.sum()), trivial, int(pieces),
-                     int(null), d)
+    out = CubeCount(ell, n, q, len(kept), n_core, int(ck.sum()), trivial, int(pieces),
+                    int(null), d)
+    if e0 is not None and null >= 0:
+        if out.soft == 0:
+            out.extended = 0
+        elif d * n_core <= max_dof:
+            u = np.mod(pos[members][alive] - x0, L)
+            H = hessian.dense_hessian(n_core, d, ci, cj, blocks)
+            out.extended = extended_soft_count(H, u, ell, labels, e0)
+    return out
 
 
 @dataclass
@@ -222,10 +284,11 @@ class LstarResult:
     dz: float
     z: float
     failed: int = 0  # cubes whose null space had no clear gap (left out of the soft counts)
-    seeds: list = field(default_factory=list)
+    e0: float = float("nan")  # extension threshold of the extended soft modes
 
     COLUMNS = ("edge", "mean n", "mean q", "mean cut-plane (Maxwell) count", "mean soft modes",
-               "fraction with soft modes", "mean trivially localised", "cubes")
+               "fraction with soft modes", "mean trivially localised", "cubes",
+               "mean extended soft modes", "fraction with extended soft modes")
 
     def table(self):
         """One row per edge, the columns in COLUMNS (means over the cubes of that edge)."""
@@ -233,14 +296,17 @@ class LstarResult:
         for ell in self.ells:
             cs = [c for c in self.counts if c.ell == ell]
             if not cs:
-                rows.append((ell,) + (np.nan,) * 6 + (0,))
+                rows.append((ell,) + (np.nan,) * 6 + (0, np.nan, np.nan))
                 continue
             known = [c.soft for c in cs if c.null >= 0]
+            ext = np.array([c.extended for c in cs if c.extended >= 0])
             rows.append((ell, np.mean([c.n for c in cs]), np.mean([c.q for c in cs]),
                          np.mean([c.maxwell for c in cs]),
                          np.mean(known) if known else np.nan,
                          np.mean(np.array(known) > 0) if known else np.nan,
-                         np.mean([c.trivial for c in cs]), len(cs)))
+                         np.mean([c.trivial for c in cs]), len(cs),
+                         ext.mean() if len(ext) else np.nan,
+                         np.mean(ext > 0) if len(ext) else np.nan))
         return np.array(rows, dtype=float)
 
     @property
@@ -249,6 +315,13 @@ class LstarResult:
         (fewer cut contacts than excess contacts inside)."""
         t = self.table()
         return crossing_down(t[:, 0], t[:, 3], 0.0)
+
+    @property
+    def extended_measured(self):
+        """l* from the soft modes themselves: the edge above which fewer than a quarter of the
+        cubes keep an extended soft mode (e > e0)."""
+        t = self.table()
+        return crossing_down(t[:, 0], t[:, 9], 0.25)
 
     @property
     def soft_measured(self):
@@ -270,7 +343,13 @@ def crossing_down(x, y, level):
     return float(x[b] + t * (x[b + 1] - x[b]))
 
 
-def lstar(comm, pack, ells, samples=8, seed=0, net=None, progress=None):
+def default_e0(d):
+    """Extension threshold: 40 % of a uniform mode's 2^-d (0.1 in 2D, 0.05 in 3D)."""
+    return 0.4 * 2.0 ** -d
+
+
+def lstar(comm, pack, ells, samples=8, seed=0, net=None, progress=None, e0=None,
+          extended=True):
     """Cut cubes of every edge in ``ells`` at ``samples`` random positions (the same on every
     rank count: positions from ``seed``), count their soft modes; cubes are spread over the ranks
     of ``comm`` (each counted on one rank) and the counts gathered everywhere."""
@@ -289,6 +368,7 @@ def lstar(comm, pack, ells, samples=8, seed=0, net=None, progress=None):
     scale = softmodes.stiffness_scale(c, pack.alpha, pack.eps)
     rng = np.random.default_rng(seed)
     corners = rng.uniform(0.0, pack.L, size=(len(ells), samples, pack.d))
+    e0 = default_e0(pack.d) if e0 is None else e0
     mpi = comm.tompi4py()
     rank, size = mpi.Get_rank(), mpi.Get_size()
     mine = []
@@ -303,13 +383,15 @@ def lstar(comm, pack, ells, samples=8, seed=0, net=None, progress=None):
             continue
         e, s = divmod(t, samples)
         mine.append((t, count_cube(pos_a, contacts, pack.L, corners[e, s], ells[e],
-                                   pack.alpha, pack.eps, scale, PETSc.COMM_SELF)))
+                                   pack.alpha, pack.eps, scale, PETSc.COMM_SELF,
+                                   e0 if extended else None)))
     everything = sorted(sum(mpi.allgather(mine), []), key=lambda x: x[0])
     failed = sum(x[1].null < 0 for x in everything)
     if progress is not None:
         progress(f"l*: {len(everything)} cubes counted, {failed} without a clear gap")
     return LstarResult(ells, [x[1] for x in everything], samples,
-                       lstar_estimate(pack.d, net.z, net.dz, c.rij), net.dz, net.z, failed)
+                       lstar_estimate(pack.d, net.z, net.dz, c.rij), net.dz, net.z, failed,
+                       e0 if extended else float("nan"))
 
 
 # --------------------------------------------------------------------------- the whole analysis
@@ -370,6 +452,7 @@ class Lengths:
             out.update({"l_L": self.acoustic[0], "l_T": self.acoustic[1]})
         if self.lstar is not None:
             out.update({"lstar": self.lstar.measured, "lstar_soft": self.lstar.soft_measured,
+                        "lstar_extended": self.lstar.extended_measured,
                         "lstar_estimate": self.lstar.estimate})
         if self.structure_fit is not None:
             out.update({k: v for k, v in self.structure_fit.items()
@@ -402,7 +485,7 @@ def fit_structure(sf, w_star, k_fit, smooth):
 
 def compute(comm, pack, what=("speeds", "omega"), matrix="full", k=None, method="auto",
             plateau=None, ells=None, samples=8, seed=0, k_max=None, k_fit=None, smooth=0.05,
-            progress=None):
+            progress=None, e0=None):
     """Compute only the parts in ``what`` (subset of WHAT) for one packing on ``comm``."""
     from parjam import moduli as moduli_mod
     from parjam import spectrum
@@ -442,7 +525,7 @@ def compute(comm, pack, what=("speeds", "omega"), matrix="full", k=None, method=
         if ells is None:
             ells = np.linspace(0.2, 1.0, 9) * pack.L
         log(f"l*: {len(ells)} cube edges x {samples} positions")
-        res.lstar = lstar(comm, pack, ells, samples, seed, net, log)
+        res.lstar = lstar(comm, pack, ells, samples, seed, net, log, e0)
     if "structure" in what:
         res.structure, res.structure_fit = structure_part(
             comm, pack, net, res, k_max or default_k_max(pack), k_fit, smooth, log)
@@ -508,11 +591,12 @@ def _write_lstar(g, ls):
     g.create_dataset("table", data=ls.table())
     g["table"].attrs["columns"] = ", ".join(ls.COLUMNS)
     cols = ("ell", "n", "q", "nc_in", "n_core", "nc_core", "trivial", "pieces", "null", "soft",
-            "maxwell", "maxwell_core")
+            "maxwell", "maxwell_core", "extended")
     g.create_dataset("cubes", data=np.array([[getattr(c, a) for a in cols] for c in ls.counts],
                                             dtype=float).reshape(-1, len(cols)))
     g["cubes"].attrs["columns"] = ", ".join(cols)
-    for key in ("estimate", "measured", "soft_measured", "samples", "failed", "dz", "z"):
+    for key in ("estimate", "measured", "soft_measured", "extended_measured", "samples",
+                "failed", "dz", "z", "e0"):
         g.attrs[key] = getattr(ls, key)
 
 

@@ -47,7 +47,8 @@ def record(pack, comm, lengths_too, lstar_too, extra):
         res = lengths.compute(comm, pack, what, method="dense",
                               ells=np.geomspace(2.0, pack.L, 14), samples=8)
         row.update({k: v for k, v in res.summary().items()
-                    if k in ("omega_star", "D0", "lstar", "lstar_estimate", "lstar_soft")})
+                    if k in ("omega_star", "D0", "lstar", "lstar_estimate", "lstar_soft",
+                             "lstar_extended")})
         if res.dos is not None:
             row["l_L"], row["l_T"] = lengths.acoustic_lengths(row["c_L"], row["c_T"],
                                                               res.omega_star)
@@ -138,11 +139,13 @@ def fits(rows, gfit_min):
     dz = table(rows, "dz", xs, members)
     out["dz_mean"] = np.nanmean(dz, axis=0).tolist()
     out["p_mean"] = np.nanmean(table(rows, "p", xs, members), axis=0).tolist()
-    for key in ("omega_star", "c_T", "c_L", "l_T", "l_L", "lstar", "lstar_estimate"):
+    for key in ("omega_star", "c_T", "c_L", "l_T", "l_L", "lstar", "lstar_extended",
+                "lstar_estimate"):
         Y = table(rows, key, xs, members)
         if np.isfinite(Y).any():
             out[key + "_mean"] = np.nanmean(Y, axis=0).tolist()
-            ok = np.isfinite(Y).all(axis=0) & (np.nanmean(Y, axis=0) > 0)
+            ok = (np.isfinite(Y).all(axis=0) & (np.nanmean(Y, axis=0) > 0)
+                  & (np.array(out["dz_mean"]) > 0))
             if ok.sum() >= 2:
                 # exponent against the member-mean dz at each dphi
                 lx = np.log(np.array(out["dz_mean"])[ok])
@@ -166,7 +169,8 @@ def report(f):
         lines.append("          G: " + " ".join(f"{m:.4f}+-{e:.4f}" for m, e in
                                                 zip(g["G_mean"], g["G_sem"])))
     lines.append("  dz: " + " ".join(f"{x:.4f}" for x in f["dz_mean"]))
-    for key in ("omega_star", "c_T", "c_L", "l_T", "l_L", "lstar", "lstar_estimate"):
+    for key in ("omega_star", "c_T", "c_L", "l_T", "l_L", "lstar", "lstar_extended",
+                "lstar_estimate"):
         if key + "_mean" in f:
             lines.append(f"  {key}: " + " ".join(f"{x:.4g}" for x in f[key + "_mean"])
                          + (f"   exponent vs dz {f[key + '_vs_dz']:.3f}"
@@ -203,6 +207,8 @@ def main():
     failed = [r for r in rows if "failed" in r]
     rows = [r for r in rows if "failed" not in r]
     if comm.Get_rank() == 0:
+        with open(args.out, "w") as fh:  # the rows first: a failing fit loses nothing
+            json.dump({"rows": rows, "failed": failed, "args": vars(args)}, fh, default=float)
         f = fits(rows, args.gfit_min)
         f["failed_members"] = failed
         for r in failed:

@@ -112,7 +112,8 @@ def test_peak_of_a_single_mode():
 def test_lstar_counts_and_scaling(world):
     """Cut cubes in 2D N = 1024 at dphi = 1e-1 and 1e-3: the measured l* (cut-plane count of
     the real cubes changes sign) is within a factor of ~2 of the Maxwell estimate d z <|r_a|>/dz
-    and grows as dz falls; every exact soft-mode count is >= the Maxwell bound of its core; the
+    and grows as dz falls, and so does the size at which extended soft modes disappear; every
+    exact soft-mode count is >= the Maxwell bound of its core and >= its extended count; the
     counts on COMM_SELF and on all ranks agree."""
     out = {}
     for name in ("1e-01", "1e-03"):
@@ -121,12 +122,22 @@ def test_lstar_counts_and_scaling(world):
         res = lengths.lstar(world, pack, ells, samples=4, seed=1)
         ref = lengths.lstar(SELF, pack, ells, samples=4, seed=1)
         np.testing.assert_array_equal(res.table(), ref.table())
+        assert [c.extended for c in res.counts] == [c.extended for c in ref.counts]
         for c in res.counts:
             if c.null >= 0:
                 assert c.soft >= c.maxwell_core
+            if c.extended >= 0:
+                assert c.extended <= c.soft
             assert c.maxwell == 2 * c.n - c.nc_in - 3
         assert 0.4 < res.measured / res.estimate < 1.5, (res.measured, res.estimate)
         out[name] = res
+    # extended soft modes disappear at a size of the order of the estimate as well (at
+    # dphi = 1e-3 they are still there in the largest cubes tried: NaN, beyond the range)
+    ext = out["1e-01"].extended_measured
+    assert 0.5 < ext / out["1e-01"].estimate < 3.0, (ext, out["1e-01"].estimate)
+    t = out["1e-03"].table()
+    assert np.isnan(out["1e-03"].extended_measured) or out["1e-03"].extended_measured > 2 * ext
+    assert np.nanmax(t[t[:, 0] > 2 * ext, 9]) > 0.25  # extended soft modes in larger cubes
     grow = out["1e-03"].measured / out["1e-01"].measured
     shrink = out["1e-03"].dz / out["1e-01"].dz
     assert grow > 0.5 / shrink, (grow, shrink)
@@ -154,7 +165,7 @@ def test_cli_output_and_bad_input(shared_tmp, world, capsys):
         g = f["lengths"]
         assert g.attrs["c_T"] == pytest.approx(ref.speeds[1], rel=1e-8)
         assert g.attrs["l_L"] == pytest.approx(ref.acoustic[0], rel=1e-8)
-        assert g["lstar/cubes"].shape == (6, 12)
+        assert g["lstar/cubes"].shape == (6, 13)
         assert "structure" not in g  # only what was asked for
     if world.getRank() == 0:
         assert "c_L, c_T" in capsys.readouterr().out

@@ -16,9 +16,9 @@ def add_parser(sub):
         "2(d-1)G/d)/rho), c_T = sqrt(G/rho) with rho = N'/V (non-rattlers, unit masses). omega: "
         "the spectrum (dense when complete, else --k lowest modes) and omega*; with speeds also "
         "l_L = c_L/omega*, l_T = c_T/omega*. lstar: cubes of several edges with their boundary "
-        "contacts cut, their non-trivial soft modes counted (MUMPS inertia), l* = the edge "
-        "above which fewer than half have soft modes, against the Maxwell estimate d z <|r_a|> "
-        "/ dz. structure: F_L(k, omega), F_T(k, omega) of the eigenmodes on the box "
+        "contacts cut, the cut-plane count and the exact non-trivial soft modes (MUMPS "
+        "inertia) and extended soft modes (dense) of each; l* where the count changes sign and "
+        "where extended soft modes disappear, against the Maxwell estimate d z <|r_a|> / dz. structure: F_L(k, omega), F_T(k, omega) of the eigenmodes on the box "
         "wavevectors, peak dispersion, its slopes and l_T = 1/k* where the transverse peak "
         "reaches omega*.")
     p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
@@ -34,6 +34,8 @@ def add_parser(sub):
                    "0.2,0.3,...,1.0)")
     p.add_argument("--samples", type=int, default=8, help="cube positions per edge (default 8)")
     p.add_argument("--seed", type=int, default=0, help="seed of the cube positions")
+    p.add_argument("--e0", type=float, help="extension threshold of the cubes' extended soft "
+                   "modes (default 0.4 x 2^-d)")
     p.add_argument("--kmax", type=float, help="largest wavenumber (default pi / <sigma>)")
     p.add_argument("--kfit", type=float,
                    help="fit omega = c k over k <= KFIT (default 3 pi/L: shells |m|^2 = 1, 2)")
@@ -71,6 +73,8 @@ def validate(args):
     if edges and not all(0 < e <= 1 for e in edges):
         raise ParjamError(f"--edges must be fractions of L in (0, 1], got {args.edges}")
     plateau = tuple(parse_floats(args.plateau, "--plateau", 2)) if args.plateau else None
+    if args.e0 is not None and not 0 < args.e0 < 1:
+        raise ParjamError(f"--e0 must lie in (0, 1), got {args.e0}")
     for name in ("kmax", "kfit"):
         v = getattr(args, name)
         if v is not None and not v > 0:
@@ -91,7 +95,7 @@ def run(args):
         comm, pack, what, matrix=args.matrix, k=args.k, method=args.method, plateau=plateau,
         ells=None if edges is None else np.array(edges) * pack.L, samples=args.samples,
         seed=args.seed, k_max=args.kmax, k_fit=args.kfit, smooth=args.smooth,
-        progress=progress)
+        progress=progress, e0=args.e0)
     if args.out and comm.getRank() == 0:
         prov = io.provenance(comm.getSize(), {
             "command": "lengths", "input": os.path.abspath(args.packing),
@@ -117,9 +121,10 @@ def print_summary(res, out):
     if "l_L" in s:
         lines.append(f"l_L, l_T          {s['l_L']:.6e}, {s['l_T']:.6e}")
     if "lstar" in s:
-        lines.append(f"l* (cut cubes)    {s['lstar']:.4g}   (estimate d z <|r_a|>/dz = "
-                     f"{s['lstar_estimate']:.4g}; half the cubes soft below "
-                     f"{s['lstar_soft']:.4g}; L = {s['L']:.4g})")
+        lines.append(f"l* (cut cubes)    {s['lstar']:.4g} from the count, "
+                     f"{s['lstar_extended']:.4g} from the extended soft modes   (estimate "
+                     f"d z <|r_a|>/dz = {s['lstar_estimate']:.4g}; L = {s['L']:.4g}; NaN: "
+                     "outside the edges tried)")
         if res.lstar.failed:
             lines.append(f"                  {res.lstar.failed} cubes without a clear gap "
                          "left out of the soft-mode counts")

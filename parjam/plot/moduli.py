@@ -102,10 +102,13 @@ def structure_figure(path_h5, path, omega_max=None, bins=60):
 
 
 def lengths_figure(results, path):
-    """l*, its Maxwell estimate, l_L and l_T against dz (log-log) with the slopes -1, -1/2."""
+    """l* (count and extended soft modes), its Maxwell estimate, l_L and l_T against dz
+    (log-log) with the slopes -1, -1/2."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 4.2))
-    marks = {"lstar": ("o", "l* (cut cubes)"), "lstar_estimate": ("x", "d z <|r_a|> / dz"),
+    marks = {"lstar": ("o", "l* (cut-plane count)"),
+             "lstar_extended": ("s", "l* (extended soft modes)"),
+             "lstar_estimate": ("x", "d z <|r_a|> / dz"),
              "l_L": ("^", "l_L = c_L / omega*"), "l_T": ("v", "l_T = c_T / omega*")}
     for k, res in enumerate(results):
         rows = res["rows"]
