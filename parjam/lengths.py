@@ -37,8 +37,8 @@ the mean cut-plane count of the real cubes changes sign.  Since floppy clusters 
 faces keep a few soft modes in cubes of any size, the soft modes are also sorted by extension
 as in the paper's Appendix, inside each cube (:func:`extended_soft_count`: G multiplies
 particle i by prod_a sin^2(pi u_a / l), the rigid motions removed first): ``lstar_extended``
-is the edge above which fewer than a quarter of the cubes keep a soft mode with e > e0
-(default 0.4 x 2^-d, 40 % of a uniform mode).
+is the edge above which no cube keeps a soft mode with e > e0 (default 0.4 x 2^-d, 40 % of a
+uniform mode).
 """
 
 from dataclasses import dataclass, field
@@ -318,10 +318,14 @@ class LstarResult:
 
     @property
     def extended_measured(self):
-        """l* from the soft modes themselves: the edge above which fewer than a quarter of the
-        cubes keep an extended soft mode (e > e0)."""
+        """l* from the soft modes themselves: the edge above which no cube keeps an extended
+        soft mode (e > e0), the geometric midpoint between the last edge where one does and the
+        next; NaN if that is the largest edge (beyond the range) or there is none."""
         t = self.table()
-        return crossing_down(t[:, 0], t[:, 9], 0.25)
+        hit = np.flatnonzero(t[:, 9] > 0)
+        if len(hit) == 0 or hit[-1] == len(t) - 1:
+            return float("nan")
+        return float(np.sqrt(t[hit[-1], 0] * t[hit[-1] + 1, 0]))
 
     @property
     def soft_measured(self):
