@@ -362,3 +362,29 @@ def test_a_member_that_does_not_jam_is_left_out(shared_tmp, world, monkeypatch):
     world.tompi4py().Barrier()
     code, _ = run_scene(text, out, world)  # the failure is remembered, not retried
     assert code == 0
+
+
+def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world, monkeypatch):
+    """A ladder state with fewer contacts than isostatic makes active_system raise on the
+    ranks of one member only: the run records it as missing instead of stopping (on 2 ranks the
+    other group would otherwise wait for ever)."""
+    from parjam import spectrum
+    from parjam.commands import run as runmod
+    from parjam.errors import UnjammedError
+
+    real = spectrum.active_system
+
+    def fragile(pack, net=None):
+        if pack.meta.get("member") == 1 and pack.meta.get("state") == "dphi1.0e-03":
+            raise UnjammedError("unjammed packing (test)")
+        return real(pack, net)
+
+    monkeypatch.setattr(spectrum, "active_system", fragile)
+    out = os.path.join(shared_tmp, "fragile")
+    code, runner = run_scene(scene_text("dos = { matrices = ['relaxed'] }"), out, world)
+    assert code == 0
+    s = runmod.read_summary(next(iter(runner.summaries.values())))
+    g = s["dphi1.0e-03"]["spectrum"]["relaxed"]
+    assert np.isnan(g["omega_star"][1]) and np.isfinite(g["omega_star"][0])
+    assert set(np.unique(g["member_of_mode"])) == {0}
+    assert np.all(np.isfinite(s["dphi1.0e-02"]["spectrum"]["relaxed"]["omega_star"]))

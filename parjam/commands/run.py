@@ -383,7 +383,16 @@ class Runner:
         data = {}
         for label in st.states:
             pack = io.read_packing(self.pack_path(st.system, m, label))
-            data[label] = self.state_record(st, comm, pack, label)
+            try:
+                data[label] = self.state_record(st, comm, pack, label)
+            except ParjamError as exc:
+                # e.g. a ladder state left with fewer contacts than isostatic (floppy modes):
+                # raised by this member's group only, so record it and go on (raising it would
+                # leave the other groups waiting for this one)
+                data[label] = {"failed": str(exc)}
+                if comm.getRank() == 0:
+                    print(f"parjam: warning: {st.kind} {st.system.name} member {m} {label}: "
+                          f"{exc}; recorded as missing", file=sys.stderr, flush=True)
         if comm.getRank() == 0:
             write_part(self.part_path(st, m), data,
                        {"stage": st.name, "member": m, "kind": st.kind})
@@ -488,17 +497,26 @@ def write_summary(path, st, by_kind, scene, failed=()):
         for tag, parts in by_kind.items():
             kind = tag.split("/")[0]
             for label in st.states:
-                recs = [p[label] for p in parts if label in p]
+                every = [p.get(label, {"failed": "not computed"}) for p in parts]
+                every = [{"failed": r["error"]} if isinstance(r.get("error"), str) else r
+                         for r in every]  # the failure key of earlier versions
+                recs = [r for r in every if "failed" not in r]
                 if not recs:
                     continue
                 g = f.require_group(f"{label}/{tag}")
+                # per-member scalars keep one entry per member (NaN where it failed)
                 for q in SCALARS.get(kind, ()):
-                    vals = np.array([float(r.get(q, np.nan)) for r in recs])
+                    vals = np.array([float(r.get(q, np.nan)) for r in every])
                     ds = g.create_dataset(q, data=vals)
                     mean, err = observables.ensemble_mean(vals[:, None])
                     ds.attrs["mean"], ds.attrs["error"] = float(mean[0]), float(err[0])
+                failed = [k for k, r in enumerate(every) if "failed" in r]
+                if failed:
+                    g.attrs["failed_members"] = np.array(failed, dtype=np.int64)
+                    g.attrs["errors"] = "; ".join(every[k]["failed"] for k in failed)
                 if kind == "spectrum":
-                    _spectrum_summary(g, recs, dos_opts)
+                    ids = [k for k, r in enumerate(every) if "failed" not in r]
+                    _spectrum_summary(g, recs, ids, dos_opts)
                 elif kind == "softmodes":
                     g.create_dataset("overlap", data=np.array([r["overlap"] for r in recs]))
                     g.create_dataset("trial_energy",
@@ -511,7 +529,7 @@ def write_summary(path, st, by_kind, scene, failed=()):
                         g.create_dataset(q, data=np.array([r[q] for r in recs]))
 
 
-def _spectrum_summary(g, recs, opts):
+def _spectrum_summary(g, recs, ids, opts):
     if all(np.any(r["frequency"] > 0) for r in recs):
         centres, edges, mean, err = ensemble_dos(recs, opts["bins"], opts["log_bins"],
                                                  opts["omega_min"])
@@ -522,7 +540,7 @@ def _spectrum_summary(g, recs, opts):
     freq = np.concatenate([r["frequency"] for r in recs])
     g.create_dataset("frequency", data=freq)
     g.create_dataset("member_of_mode", data=np.concatenate(
-        [np.full(len(r["frequency"]), k) for k, r in enumerate(recs)]))
+        [np.full(len(r["frequency"]), k) for k, r in zip(ids, recs)]))
     if all("eps_perp" in r for r in recs):
         for q in ("eps_perp", "eps_par", "participation_ratio"):
             g.create_dataset(q, data=np.concatenate([r[q] for r in recs]))
