@@ -323,8 +323,8 @@ class LstarResult:
         next; NaN if that is the largest edge (beyond the range) or there is none."""
         t = self.table()
         hit = np.flatnonzero(t[:, 9] > 0)
-        if len(hit) == 0 or hit[-1] == len(t) - 1:
-            return float("nan")
+        if len(hit) == 0 or hit[-1] == len(t) - 1 or not np.isfinite(t[hit[-1] + 1, 9]):
+            return float("nan")  # none, or the next edge was not measured (too large, no gap)
         return float(np.sqrt(t[hit[-1], 0] * t[hit[-1] + 1, 0]))
 
     @property
