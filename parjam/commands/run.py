@@ -21,6 +21,7 @@ import collections
 import os
 import sys
 import time
+import warnings
 
 import numpy as np
 
@@ -508,7 +509,9 @@ def write_summary(path, st, by_kind, scene, failed=()):
                 for q in SCALARS.get(kind, ()):
                     vals = np.array([float(r.get(q, np.nan)) for r in every])
                     ds = g.create_dataset(q, data=vals)
-                    mean, err = observables.ensemble_mean(vals[:, None])
+                    with warnings.catch_warnings():  # a single finite member: error nan
+                        warnings.simplefilter("ignore", RuntimeWarning)
+                        mean, err = observables.ensemble_mean(vals[:, None])
                     ds.attrs["mean"], ds.attrs["error"] = float(mean[0]), float(err[0])
                 failed = [k for k, r in enumerate(every) if "failed" in r]
                 if failed:
