@@ -50,7 +50,9 @@ def member_states(args, member, comm, progress):
     return states, protocol, totals
 
 
-REL_FORCE_WARN = 1e-5  # max|F| / mean contact force above this: force balance is poor
+REL_FORCE_WARN = 1e-4  # max|F| / mean contact force above this: force balance is poor
+# (harmonic phi_c states end near 1e-5: forces ~1e-8 against ftol = 1e-13; alpha = 3 at
+# dphi = 1e-8 reaches 1.8e-3)
 
 
 def quality_checks(pack, net, label):
