@@ -2,7 +2,8 @@
 """The paper's figures and laws from the bundled scenes' results (docs/reproduction.md).
 
     mpirun -n 2 parjam run scenes/paper-3d.toml --out results/repro/paper-3d   (and the others)
-    python scripts/reproduce.py --results results/repro --img docs/img --json results/repro/fits.json
+    python scripts/reproduce.py --results results/repro --img docs/img \
+        --json results/repro/fits.json
 
 Reads the summary files written by ``parjam run`` (parjam.commands.run.write_summary), fits the
 scaling laws with bootstrap errors over ensemble members, draws docs/img/repro_*.png and prints
@@ -181,7 +182,8 @@ def trans(plt, systems, img, fits):
         bp, _ = np.polyfit(np.log(w[low]), np.log(perp[low]), 1)
         fits[f"trans/{name}"] = {"par_exponent_low20pct": float(b),
                                  "perp_exponent_low20pct": float(bp),
-                                 "perp_at_lowest_5pct": float(np.mean(perp[w < np.quantile(w, 0.05)])),
+                                 "perp_at_lowest_5pct":
+                                     float(np.mean(perp[w < np.quantile(w, 0.05)])),
                                  "omega_range": [float(w[low].min()), float(w[low].max())]}
         x = np.geomspace(w.min(), w.max(), 20)
         ax.loglog(x, np.exp(a) * x**2, "k--", lw=0.8, label=r"$\propto\omega^2$")
