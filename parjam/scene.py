@@ -209,8 +209,10 @@ def load(path):
             data = tomllib.load(fh)
     except FileNotFoundError:
         raise ParjamError(f"{path}: no such scene file") from None
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ParjamError(f"{path}: not valid TOML ({exc})") from None
+    except OSError as exc:  # a directory, no permission, ...
+        raise ParjamError(f"{path}: cannot read the scene file ({exc.strerror})") from None
     return parse(data, path)
 
 
