@@ -246,7 +246,7 @@ def eq33(plt, systems, img, fits):
 def hertz(plt, systems, img, fits):
     """Hertzian contacts: dz ~ p^(1/3), omega* ~ p^(1/2), D0 ~ p^(-1/6)."""
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
-    for name, s in systems.items():
+    for k, (name, s) in enumerate(sorted(systems.items(), key=lambda t: t[1]["attrs"]["n"])):
         labs = states(s, "p")
         p = table(s, labs, "network", "pressure")
         for ax, (key, y, theory) in zip(axes, (
@@ -255,11 +255,11 @@ def hertz(plt, systems, img, fits):
                 ("D0", table(s, labs, "spectrum", "D0", "full"), -1 / 6))):
             f = fit_power(p, y)
             fits[f"hertz/{key}/{name}"] = f
-            ax.loglog(p.ravel(), y.ravel(), "o", ms=3, alpha=0.6)
+            ax.loglog(p.ravel(), y.ravel(), "o", ms=3, alpha=0.6, color=f"C{k}")
             x = np.geomspace(p.min(), p.max(), 20)
-            ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-",
-                      label=f"fit {law(f)} (theory {theory:.3g})")
-            ax.set(xlabel="p", ylabel=key, title=f"{name}: {key}")
+            ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
+                      label=f"N = {s['attrs']['n']}: {law(f)} (theory {theory:.3g})")
+            ax.set(xlabel="p", ylabel=key, title=f"Hertz, alpha = 5/2: {key}")
             ax.legend(fontsize=7)
     return save(fig, img, "hertz")
 
