@@ -8,6 +8,7 @@ more characters) go to PETSc's options database before any PETSc object is creat
 
 import argparse
 import importlib
+import os
 import pkgutil
 import re
 import sys
@@ -74,6 +75,7 @@ def main(argv=None):
     ours, petsc_args = split_petsc_args(argv)
     env.init(petsc_args)
     rank, size = rank_and_size()
+    _outcome_comm()  # collective: made here, while every rank is sure to take part
     parser = build_parser()
     try:
         args = parser.parse_args(ours)
@@ -85,16 +87,19 @@ def main(argv=None):
         faults.point("command")  # PARJAM_FAULT testing hook (parjam/faults.py)
         code = args.run(args)
         # a command is collective: return only when every rank is done, so the files that rank 0
-        # wrote exist for whatever any rank does next (e.g. a script or test calling main twice)
-        from mpi4py import MPI
-
-        MPI.COMM_WORLD.Barrier()
+        # wrote exist for whatever any rank does next (e.g. a script or test calling main twice);
+        # the closing reduction also tells a rank whether a peer failed with a "collective" error
+        failed, worst = _closing_outcome(0)
+        if failed:
+            return worst
         return int(code or 0)
     except ParjamError as exc:
         if rank == 0 or not exc.collective:
             prefix = f"[rank {rank}] " if size > 1 and not exc.collective else ""
             print(f"parjam: error: {prefix}{exc}", file=sys.stderr, flush=True)
         if size > 1 and not exc.collective:
+            _abort(exc.exit_code)
+        if size > 1 and not _ended_together(exc):
             _abort(exc.exit_code)
         return exc.exit_code
     except KeyboardInterrupt:
@@ -109,6 +114,64 @@ def main(argv=None):
         if size > 1:
             _abort(1)
         return 1
+
+
+_OUTCOME_COMM = None
+ERROR_WAIT = float(os.environ.get("PARJAM_ERROR_WAIT", "60"))  # seconds
+
+
+def _outcome_comm():
+    """A private duplicate of COMM_WORLD for the closing reduction (it can never match a
+    collective of a command)."""
+    global _OUTCOME_COMM
+    if _OUTCOME_COMM is None:
+        from mpi4py import MPI
+
+        _OUTCOME_COMM = MPI.COMM_WORLD.Dup()
+    return _OUTCOME_COMM
+
+
+def _closing_outcome(code, wait=None):
+    """Sum of failed ranks and the largest exit code over all ranks, by a reduction on the
+    private communicator; with ``wait`` (seconds), give up and return None if the other ranks
+    do not join in time (they are stuck in a collective of the command)."""
+    import time
+
+    import numpy as np
+    from mpi4py import MPI
+
+    comm = _outcome_comm()
+    if comm.Get_size() == 1:
+        return int(code != 0), code
+    mine = np.array([int(code != 0), code], dtype=np.int64)
+    total, worst = np.zeros(2, dtype=np.int64), np.zeros(2, dtype=np.int64)
+    reqs = [comm.Iallreduce(mine, total, op=MPI.SUM), comm.Iallreduce(mine, worst, op=MPI.MAX)]
+    start = time.monotonic()
+    while not MPI.Request.Testall(reqs):
+        if wait is not None and time.monotonic() - start > wait:
+            return None
+        time.sleep(0.005)
+    return int(total[0]), int(worst[1])
+
+
+def _ended_together(exc):
+    """A ParjamError marked collective is normally raised on every rank at once.  If some ranks
+    did not raise it, they are either finishing the command (and learn here that a peer failed)
+    or stuck in one of its collectives, waiting for this rank: then end the job (MPI Abort)
+    after PARJAM_ERROR_WAIT seconds instead of hanging."""
+    from mpi4py import MPI
+
+    outcome = _closing_outcome(exc.exit_code or 1, wait=ERROR_WAIT)
+    if outcome is None:
+        rank = MPI.COMM_WORLD.Get_rank()
+        print(f"parjam: error: [rank {rank}] {exc} (the other ranks did not end the command: "
+              f"aborting)", file=sys.stderr, flush=True)
+        return False
+    failed, _ = outcome
+    if failed < MPI.COMM_WORLD.Get_size() and MPI.COMM_WORLD.Get_rank() != 0:
+        print(f"parjam: error: [rank {MPI.COMM_WORLD.Get_rank()}] {exc}", file=sys.stderr,
+              flush=True)
+    return True
 
 
 def _abort(code):

@@ -6,7 +6,8 @@
   (in ``parjam pack``, after a member's files and manifest record are written);
 - KIND: ``error`` (default: a non-collective ParjamError, the path of a problem only one rank
   sees), ``crash`` (a RuntimeError, the path of a bug) or ``kill`` (the process SIGKILLs itself,
-  as the out-of-memory killer would).
+  as the out-of-memory killer would) or ``collective`` (a ParjamError marked collective although
+  only this rank raises it: a mislabelled error, which must not hang the other ranks).
 
 Only this module reads the variable; unset (the normal case) it costs one dictionary look-up.
 """
@@ -17,7 +18,7 @@ import signal
 from parjam.errors import ParjamError
 
 POINTS = ("command", "pack.member")
-KINDS = ("error", "crash", "kill")
+KINDS = ("error", "crash", "kill", "collective")
 
 
 class InjectedCrash(RuntimeError):
@@ -49,6 +50,8 @@ def point(name):
         return
     if kind == "kill":
         os.kill(os.getpid(), signal.SIGKILL)
+    if kind == "collective":
+        raise ParjamError(f"injected collective error at {name} (PARJAM_FAULT)")
     if kind == "crash":
         raise InjectedCrash(f"injected crash at {name} (PARJAM_FAULT)")
     raise ParjamError(f"injected error at {name} (PARJAM_FAULT)", collective=False)

@@ -55,6 +55,22 @@ def test_one_rank_fails_in_the_middle_of_an_ensemble(tmp_path):
     assert not [n for n in names if ".tmp" in n]
 
 
+@pytest.mark.serial
+@pytest.mark.parametrize("command", [
+    ["info"],  # rank 0 finishes the command and learns at the closing reduction
+    ["pack", "--dim", "2", "--n", "32", "--dispersity", "bi", "--members", "1", "--dphi",
+     "1e-3", "--out", "o", "-q"],  # rank 0 is stuck in the shared member's collectives
+])
+def test_one_rank_raises_a_collective_error(tmp_path, command):
+    """An error marked collective but raised on one rank only (a mislabelled error) used to
+    leave that rank waiting in PetscFinalize while the others waited in the command: now both
+    end, with the message and a non-zero status, within PARJAM_ERROR_WAIT."""
+    r = _mpirun(["-m", "parjam", *command], tmp_path, PARJAM_FAULT="command@1:collective",
+                PARJAM_ERROR_WAIT="5")
+    assert r.returncode != 0
+    assert "parjam: error: [rank 1] injected collective error at command" in r.stderr, r.stderr
+
+
 def test_fault_variable_is_validated():
     from parjam import faults
     from parjam.errors import ParjamError
