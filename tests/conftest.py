@@ -33,3 +33,17 @@ def shared_tmp():
 
 
 DATA = os.path.join(os.path.dirname(__file__), "data")
+
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def subprocess_env(**extra):
+    """Environment for a parjam subprocess (serial or mpirun): this checkout on the path, Open MPI
+    allowed as root and oversubscribed, one BLAS thread, no inherited PARJAM_FAULT."""
+    env = dict(os.environ, PYTHONPATH=ROOT, OMPI_ALLOW_RUN_AS_ROOT="1",
+               OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMPI_MCA_rmaps_base_oversubscribe="1",
+               OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", OMPI_MCA_mpi_yield_when_idle="1")
+    env.pop("PARJAM_FAULT", None)
+    env.update(extra)
+    return env

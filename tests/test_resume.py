@@ -12,25 +12,16 @@ import sys
 import time
 
 import pytest
+from conftest import subprocess_env
 
 from parjam import cli, manifest
 from parjam.io import read_packing, sha256
 from parjam.testing.h5compare import differences
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MEMBERS = 5
 ARGS = ["pack", "--dim", "2", "--n", "32", "--dispersity", "bi", "--members", str(MEMBERS),
         "--seed", "5", "--dphi", "1e-4", "1e-2", "-q"]
 STATES = ("phi_c", "dphi1.0e-04", "dphi1.0e-02")
-
-
-def _env(**extra):
-    env = dict(os.environ, PYTHONPATH=ROOT, OMPI_ALLOW_RUN_AS_ROOT="1",
-               OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMPI_MCA_rmaps_base_oversubscribe="1",
-               OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", OMPI_MCA_mpi_yield_when_idle="1")
-    env.pop("PARJAM_FAULT", None)
-    env.update(extra)
-    return env
 
 
 def _cmd(out, mpi=0, quiet=True):
@@ -39,8 +30,8 @@ def _cmd(out, mpi=0, quiet=True):
 
 
 def _run(out, mpi=0, timeout=300, quiet=True, **env):
-    return subprocess.run(_cmd(out, mpi, quiet), env=_env(**env), capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(_cmd(out, mpi, quiet), env=subprocess_env(**env), capture_output=True,
+                          text=True, timeout=timeout)
 
 
 def _records(out):
@@ -89,7 +80,7 @@ def test_sigterm_then_sigkill_then_resume(tmp_path, uninterrupted):
     uninterrupted run's."""
     out = tmp_path / "run"
     for sig in (signal.SIGTERM, signal.SIGKILL):
-        proc = subprocess.Popen(_cmd(out), env=_env(), stdout=subprocess.PIPE,
+        proc = subprocess.Popen(_cmd(out), env=subprocess_env(), stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
         target = len(_records(out)) + 1
         deadline = time.time() + 240

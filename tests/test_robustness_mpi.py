@@ -8,23 +8,14 @@ import sys
 import textwrap
 
 import pytest
+from conftest import subprocess_env
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LIMIT = 120  # seconds: far above the few seconds these runs take; a hang would exceed it
-
-
-def _env(**extra):
-    env = dict(os.environ, PYTHONPATH=ROOT, OMPI_ALLOW_RUN_AS_ROOT="1",
-               OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMPI_MCA_rmaps_base_oversubscribe="1",
-               OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", OMPI_MCA_mpi_yield_when_idle="1")
-    env.pop("PARJAM_FAULT", None)
-    env.update(extra)
-    return env
 
 
 def _mpirun(args, cwd, **env):
     cmd = ["mpirun", "--oversubscribe", "-n", "2", sys.executable] + args
-    return subprocess.run(cmd, cwd=cwd, env=_env(**env), capture_output=True, text=True,
+    return subprocess.run(cmd, cwd=cwd, env=subprocess_env(**env), capture_output=True, text=True,
                           timeout=LIMIT)
 
 
