@@ -132,6 +132,44 @@ def lengths_figure(results, path):
     plt.close(fig)
 
 
+def moduli_files_figure(paths_h5, path):
+    """From files of ``parjam moduli`` (e.g. the states of a compression ladder): B, G and the
+    softest shear G_min against the pressure, and G / B, log-log with fitted slopes (expected
+    in 3D harmonic packings: B ~ p^0, G ~ p^(1/2))."""
+    import h5py
+
+    rows = []
+    for p in paths_h5:
+        with h5py.File(p, "r") as f:
+            a = f["moduli"].attrs
+            rows.append([float(a[k]) for k in ("pressure", "B", "G", "G_min")])
+    p, B, G, Gmin = np.array(sorted(rows)).T
+    plt = pyplot()
+    fig, ax = plt.subplots(1, 2, figsize=(9.5, 3.8))
+    for k, (y, lab, m) in enumerate(((B, "B", "o"), (G, "G", "s"), (Gmin, "G_min", "v"))):
+        ok = y > 0
+        ax[0].plot(p[ok], y[ok], m, color=f"C{k}", label=lab)
+        if ok.sum() >= 2 and lab != "G_min":
+            s = np.polyfit(np.log(p[ok]), np.log(y[ok]), 1)[0]
+            _fit_line(ax[0], p[ok], y[ok], s, f"C{k}", f"{lab}: slope {s:.2f}")
+    r = G / B
+    ok = r > 0
+    ax[1].plot(p[ok], r[ok], "o", color="C3")
+    if ok.sum() >= 2:
+        s = np.polyfit(np.log(p[ok]), np.log(r[ok]), 1)[0]
+        _fit_line(ax[1], p[ok], r[ok], s, "C3", f"slope {s:.2f}")
+    if np.any(Gmin <= 0):
+        ax[0].set_title(f"{int(np.sum(Gmin <= 0))} state(s) unstable to some shear (G_min <= 0)",
+                        fontsize=8)
+    for a, name in zip(ax, ("modulus", "G / B")):
+        a.set(xscale="log", yscale="log", xlabel="pressure p", ylabel=name)
+        if a.get_legend_handles_labels()[0]:
+            a.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description="figures of moduli, structure factors, lengths")
     ap.add_argument("kind", choices=("scaling", "structure", "lengths"))

@@ -159,6 +159,35 @@ def figs(pack, path, x0=0.5, m=2):
     _save(plt, fig, path)
 
 
+def overlap_figure(path_h5, path):
+    """From the file of ``parjam softmodes``: the overlap function f(x) (with and without the
+    trivially localised modes, its lower bound c) and the extension e of every soft mode, sorted,
+    against the threshold e0 of the extended subspace."""
+    import h5py
+
+    with h5py.File(path_h5, "r") as f:
+        g = f["softmodes"]
+        ov, ext = g["overlap"][()], np.sort(g["extension"][()])[::-1]
+        c, cn, axis = (g["overlap"].attrs[k] for k in ("c", "c_nontrivial", "axis"))
+        q, e0 = int(g["count"].attrs["q"]), float(g["trial_energy"].attrs["e0"])
+        planes = " ".join(p.decode() if isinstance(p, bytes) else str(p)
+                          for p in g.attrs["planes"])
+    plt = pyplot()
+    fig, ax = plt.subplots(1, 2, figsize=(9.5, 3.6))
+    ax[0].plot(ov[:, 0], ov[:, 1], "-o", ms=3, label="f(x)")
+    ax[0].plot(ov[:, 0], ov[:, 2], "--s", ms=3, label="f(x), localised modes projected out")
+    ax[0].axhline(c, color="k", ls=":", lw=0.8, label=f"c = {c:.3f} ({cn:.3f})")
+    ax[0].set(xlabel=f"{axis} / L from the first plane", ylabel="f(x)",
+              title=f"overlap function, cut {planes} (q = {q})")
+    ax[0].legend(fontsize=7)
+    ax[1].semilogy(np.arange(1, len(ext) + 1), np.maximum(ext, 1e-16), ".", ms=3)
+    ax[1].axhline(e0, color="k", ls="--", lw=0.8,
+                  label=f"e0 = {e0:g}: q' = {int(np.sum(ext > e0))} of {len(ext)}")
+    ax[1].set(xlabel="soft mode (by extension)", ylabel="extension e", title="extension")
+    ax[1].legend(fontsize=7)
+    _save(plt, fig, path)
+
+
 def main(argv=None):
     from parjam import env, io
 

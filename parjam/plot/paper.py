@@ -1,0 +1,512 @@
+"""The paper's figures and laws from the summary files of ``parjam run`` (docs/reproduction.md).
+
+A results directory holds one subdirectory per bundled scene (``SCENES``: ``paper-3d``,
+``paper-2d``, ``hertz-3d``, ``softmodes-3d``, each the ``--out`` of ``parjam run``), or the
+summary files of one ``parjam run`` directly.  Each figure of ``FIGURES`` uses the systems of its
+group that hold the data it needs (its ``needs``), fits its laws (parjam.plot.fits) into a
+``fits`` dict and is drawn to ``repro_<name>.png``.  ``parjam plot RESULTS --img DIR`` and
+``scripts/reproduce.py`` call :func:`reproduce`.
+"""
+
+import glob
+import json
+import os
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from parjam.errors import ParjamError
+from parjam.plot import atomic_png, pyplot
+from parjam.plot.fits import fit_eq33, fit_power, law, log_slope
+
+#: figure group -> the bundled scenes (subdirectories of a results directory) that feed it
+SCENES = {"paper": ("paper-3d", "paper-2d"), "hertz": ("hertz-3d",),
+          "softmodes": ("softmodes-3d",)}
+DPI = 80
+
+
+# --------------------------------------------------------------------------- summaries
+
+def read(path):
+    """One summary file (parjam.commands.run.write_summary) as nested dicts; ParjamError if it
+    is not one."""
+    import h5py
+
+    from parjam.commands.run import read_summary
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ParjamError(f"{path}: no such file")
+    if not h5py.is_hdf5(path):
+        raise ParjamError(f"{path}: not an HDF5 file")
+    try:
+        s = read_summary(path)
+    except (OSError, RuntimeError, KeyError, ValueError) as exc:
+        raise ParjamError(f"{path}: unreadable HDF5 file ({exc})") from None
+    if not is_summary(s):
+        raise ParjamError(f"{path}: not a summary file of parjam run (no system, states, d, n "
+                          f"and members attributes)")
+    return s
+
+
+def is_summary(s):
+    return all(k in s["attrs"] for k in ("system", "states", "d", "n", "members"))
+
+
+def load(results, scene):
+    """{system name: summary dict} of one scene's output directory (``scene`` = "": the
+    summaries directly in ``results``)."""
+    out = {}
+    for path in sorted(glob.glob(os.path.join(glob.escape(results), scene, "summary-*.h5"))):
+        s = read(path)
+        out[s["attrs"]["system"]] = s
+    return out
+
+
+def read_results(results, summaries=()):
+    """{group: {system: summary}}: the bundled scenes' subdirectories of ``results`` (may be
+    None) by ``SCENES``; summaries directly in ``results`` and the files ``summaries`` may serve
+    every group (each figure keeps the systems with the data it needs)."""
+    groups = {g: {} for g in SCENES}
+    direct = {}
+    if results is not None:
+        for g, scenes in SCENES.items():
+            for scene in scenes:
+                groups[g].update(load(results, scene))
+        direct.update(load(results, ""))
+    for path in summaries:
+        s = read(path)
+        direct[s["attrs"]["system"]] = s
+    for g in groups:
+        groups[g].update(direct)
+    return groups
+
+
+def states(s, prefix="dphi"):
+    """The state labels of a summary starting with ``prefix`` (phi_c excluded), in the order of
+    the run, those with results only."""
+    labs = [x.decode() if isinstance(x, bytes) else str(x) for x in s["attrs"]["states"]]
+    return [lab for lab in labs if lab.startswith(prefix) and lab != "phi_c" and lab in s]
+
+
+def value(lab):
+    return float(lab.replace("dphi", "").replace("p", ""))
+
+
+def table(s, labs, kind, q, matrix=None):
+    """(members, states) array of one quantity."""
+    cols = []
+    for lab in labs:
+        g = s[lab][kind] if matrix is None else s[lab]["spectrum"][matrix]
+        cols.append(np.asarray(g[q], dtype=float))
+    return np.array(cols).T
+
+
+def _get(s, *keys):
+    for k in keys:
+        if not isinstance(s, dict) or k not in s:
+            return None
+        s = s[k]
+    return s
+
+
+def _has(s, labs, *paths, at_least=2):
+    """At least ``at_least`` states and every state in ``labs`` with every key path."""
+    return len(labs) >= at_least and all(_get(s, lab, *p) is not None for lab in labs
+                                         for p in paths)
+
+
+# --------------------------------------------------------------------------- figures
+
+FIG1_STATES = ["dphi1.0e-01", "dphi1.0e-02", "dphi1.0e-03", "dphi1.0e-04", "dphi1.0e-08"]
+COMPARE_STATES = ["dphi1.0e-01", "dphi1.0e-02", "dphi1.0e-03"]
+FLUCT_STATES = ["phi_c", "dphi1.0e-04", "dphi1.0e-02"]
+
+
+def _panels(plt, systems):
+    fig, axes = plt.subplots(1, len(systems), figsize=(4.6 * len(systems), 3.4), squeeze=False)
+    return fig, axes[0]
+
+
+def fig1(plt, systems, fits):
+    """Fig. 1: D(omega) of the full matrix for dphi = 1e-1 .. 1e-8."""
+    fig, axes = _panels(plt, systems)
+    for ax, (name, s) in zip(axes, systems.items()):
+        for lab in FIG1_STATES:
+            dos = _get(s, lab, "spectrum", "full", "dos")
+            if dos is not None:
+                ax.plot(dos["omega"], dos["density"], "-", lw=1.2,
+                        label=rf"$\delta\phi$ = {value(lab):.0e}")
+        ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}, full matrix")
+        ax.legend(fontsize=7)
+    return fig
+
+
+def pooled_dos(s, lab, matrix, edges):
+    g = s[lab]["spectrum"][matrix]
+    w = g["frequency"][g["frequency"] > 0]
+    n_modes = np.sum(s["attrs"]["d"] * s[lab]["network"]["N_active"] - s["attrs"]["d"])
+    counts, _ = np.histogram(w, edges)
+    return counts / (n_modes * np.diff(edges))
+
+
+def _compare_ok(s, lab):
+    return all(_get(s, lab, *p) is not None for p in (
+        ("spectrum", "full", "frequency"), ("spectrum", "relaxed", "frequency"),
+        ("network", "N_active")))
+
+
+def compare(plt, systems, fits):
+    """Fig. "compare": full and relaxed D(omega), log-linear, at three dphi."""
+    fig, axes = _panels(plt, systems)
+    for ax, (name, s) in zip(axes, systems.items()):
+        for k, lab in enumerate(COMPARE_STATES):
+            if not _compare_ok(s, lab):
+                continue
+            top = np.percentile(s[lab]["spectrum"]["full"]["frequency"], 99)
+            edges = np.linspace(0, top, 50)
+            c = 0.5 * (edges[1:] + edges[:-1])
+            for matrix, ls in (("full", "-"), ("relaxed", "--")):
+                d = pooled_dos(s, lab, matrix, edges)
+                ax.semilogy(c[d > 0], d[d > 0], ls, color=f"C{k}", lw=1.1,
+                            label=f"{matrix} {value(lab):.0e}")
+        ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}: full (-) vs relaxed (--)")
+        ax.legend(fontsize=6, ncol=2)
+    return fig
+
+
+def _sans_states(s):
+    return [lab for lab in states(s) if value(lab) >= 1e-4]
+
+
+def sans(plt, systems, fits):
+    """Fig. "sans": omega* of the relaxed system against dz (dphi >= 1e-4)."""
+    fig, ax = plt.subplots(figsize=(4.6, 3.6))
+    for k, (name, s) in enumerate(systems.items()):
+        labs = _sans_states(s)
+        dz = table(s, labs, "network", "dz_iso")
+        ws = table(s, labs, "spectrum", "omega_star", "relaxed")
+        f = fit_power(dz, ws)
+        fits[f"sans/{name}"] = f
+        ax.loglog(dz.ravel(), ws.ravel(), "o", ms=3, color=f"C{k}", alpha=0.5)
+        x = np.geomspace(np.nanmin(dz[dz > 0]), np.nanmax(dz), 20)
+        ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
+                  label=f"{name}: slope {law(f)}")
+    ax.set(xlabel=r"$\delta z$", ylabel=r"$\omega^*$ (relaxed)", title=r"$\omega^* \sim \delta z$")
+    ax.legend(fontsize=7)
+    return fig
+
+
+def trans(plt, systems, fits):
+    """Fig. "trans": transverse and longitudinal sums per mode at dphi = 1e-8, slopes over the
+    lowest 20 % of the modes."""
+    fig, axes = _panels(plt, systems)
+    for ax, (name, s) in zip(axes, systems.items()):
+        g = _get(s, "dphi1.0e-08", "spectrum", "full") or {}
+        if "eps_perp" not in g:
+            continue
+        w, perp, par = g["frequency"], g["eps_perp"], g["eps_par"]
+        ok = w > 0
+        w, perp, par = w[ok], perp[ok], par[ok]
+        ax.loglog(w, perp, ".", ms=1.5, color="C0", label=r"$\epsilon_\perp$ (transverse)")
+        ax.loglog(w, par, ".", ms=1.5, color="C3", label=r"$\epsilon_\parallel$ (longitudinal)")
+        low = w < np.quantile(w, 0.2)
+        b, a = log_slope(w[low], par[low])
+        bp, _ = log_slope(w[low], perp[low])
+        fits[f"trans/{name}"] = {"par_exponent_low20pct": float(b),
+                                 "perp_exponent_low20pct": float(bp),
+                                 "perp_at_lowest_5pct":
+                                     float(np.mean(perp[w < np.quantile(w, 0.05)])),
+                                 "omega_range": [float(w[low].min()), float(w[low].max())]}
+        x = np.geomspace(w.min(), w.max(), 20)
+        ax.loglog(x, np.exp(a) * x**2, "k--", lw=0.8, label=r"$\propto\omega^2$")
+        ax.set(xlabel=r"$\omega$", ylabel="sum per mode", title=rf"{name}, $\delta\phi=10^{{-8}}$")
+        ax.legend(fontsize=7)
+    return fig
+
+
+def _trans_ok(s):
+    g = _get(s, "dphi1.0e-08", "spectrum", "full") or {}
+    return all(k in g for k in ("frequency", "eps_perp", "eps_par")) and np.sum(
+        np.asarray(g["frequency"]) > 0) >= 10
+
+
+def eq33_fit(name, s, fits):
+    """Eq. (33) fit of one system over dphi >= 1e-4 into ``fits`` (eq33/ and
+    eq33_relaxed_ratio/); returns the fit and the tables it used."""
+    labs = _sans_states(s)
+    w2 = table(s, labs, "spectrum", "omega_star", "full") ** 2
+    ws2 = table(s, labs, "spectrum", "omega_star", "relaxed") ** 2
+    dz = table(s, labs, "network", "dz_iso")
+    p = table(s, labs, "network", "pressure")
+    f = fit_eq33(w2, ws2, dz, p)
+    fits[f"eq33/{name}"] = f
+    fits[f"eq33_relaxed_ratio/{name}"] = {
+        "omega_AM2_over_omega_star2": [float(x) for x in np.nanmean(w2 / ws2, axis=0)],
+        "states": labs}
+    return f, w2, dz, p
+
+
+def _eq33_ok(s):
+    return _has(s, _sans_states(s), ("spectrum", "full", "omega_star"),
+                ("spectrum", "relaxed", "omega_star"), ("network", "dz_iso"),
+                ("network", "pressure"))
+
+
+def eq33(plt, systems, fits):
+    """Eq. (33): omega_AM^2 = A1 dz^2 - A2 p, omega_AM the onset of the full system's D(omega)
+    (its omega*)."""
+    fig, ax = plt.subplots(figsize=(4.6, 3.6))
+    for k, (name, s) in enumerate(systems.items()):
+        f, w2, dz, p = eq33_fit(name, s, fits)
+        pred = f["A1"] * dz**2 - f["A2"] * p
+        ax.loglog(pred.ravel(), w2.ravel(), "o", ms=3, color=f"C{k}",
+                  label=f"{name}: A1 = {f['A1']:.3g}, A2 = {f['A2']:.3g}")
+    lim = ax.get_xlim()
+    ax.loglog(lim, lim, "k--", lw=0.8)
+    ax.set(xlabel=r"$A_1\delta z^2 - A_2 p$", ylabel=r"$\omega_{AM}^2$",
+           title="Eq. (33), full system")
+    ax.legend(fontsize=7)
+    return fig
+
+
+def _diag_states(s):
+    return [lab for lab in states(s) if value(lab) >= 1e-5]
+
+
+def diag(plt, systems, fits):
+    """Fig. "diag" / Eq. (22): dz against p (dphi >= 1e-5), dz = C0 p^(1/2); Eq. (33) gives the
+    stability line (fitted here too when the eq33 figure is not drawn)."""
+    fig, ax = plt.subplots(figsize=(4.8, 3.7))
+    for k, (name, s) in enumerate(systems.items()):
+        labs = _diag_states(s)
+        p = table(s, labs, "network", "pressure")
+        dz = table(s, labs, "network", "dz_iso")
+        f = fit_power(p, dz)
+        fits[f"diag/{name}"] = f
+        ax.loglog(p.ravel(), dz.ravel(), "o", ms=3, color=f"C{k}", alpha=0.5)
+        x = np.geomspace(p.min(), p.max(), 20)
+        ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
+                  label=f"{name}: slope {law(f)}, C0 = {f['prefactor']:.2f}")
+        e33 = fits.get(f"eq33/{name}")
+        if e33 is None and _eq33_ok(s):
+            e33 = eq33_fit(name, s, fits)[0]
+        if e33 and e33["A1"] > 0 and e33["A2"] > 0:
+            line = np.sqrt(e33["A2"] / e33["A1"] * x)
+            ax.fill_between(x, 1e-6, line, color=f"C{k}", alpha=0.12)
+            ax.loglog(x, line, ":", color=f"C{k}", lw=1,
+                      label=rf"{name}: unstable below $\sqrt{{A_2 p/A_1}}$")
+    ax.set(xlabel="p", ylabel=r"$\delta z$", title=r"$\delta z = C_0\, p^{1/2}$ (Eq. 22)")
+    ax.set_ylim(bottom=max(ax.get_ylim()[0], 1e-3))
+    ax.legend(fontsize=6)
+    return fig
+
+
+def _fluct_ok(s):
+    return any((_get(s, lab, "fluctuations", "l") is not None
+                and np.shape(s[lab]["fluctuations"]["l"])[-1] >= 2) for lab in FLUCT_STATES)
+
+
+def fluct(plt, systems, fits):
+    """Variance of the contact number in sub-boxes of side l, against l^d (Gaussian: std
+    ~ l^(d/2)) and l^(2(d-1)) (surface: std ~ l^(d-1))."""
+    fig, axes = _panels(plt, systems)
+    for ax, (name, s) in zip(axes, systems.items()):
+        d = int(s["attrs"]["d"])
+        for k, lab in enumerate(FLUCT_STATES):
+            g = _get(s, lab, "fluctuations")
+            if g is None:
+                continue
+            l = g["l"][0][1:]  # m >= 2: sub-boxes (m = 1 is the whole box, variance 0)
+            std_c = np.sqrt(g["var_contacts"][:, 1:].mean(axis=0))
+            std_x = np.sqrt(g["var_excess"][:, 1:].mean(axis=0))
+            ax.loglog(l, std_c, "o-", color=f"C{k}", ms=3, label=f"{lab}: contacts")
+            ax.loglog(l, std_x, "s--", color=f"C{k}", ms=3, label=f"{lab}: excess")
+            if len(l) > 1:
+                fits[f"fluct/{name}/{lab}"] = {
+                    "std_contacts_exponent": float(log_slope(l, std_c)[0]),
+                    "std_excess_exponent": float(log_slope(l, std_x)[0]),
+                    "gaussian": d / 2, "surface": d - 1}
+        ref = np.array([l.min(), l.max()])
+        ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d / 2), "k:", label=f"l^{d / 2:g}")
+        ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d - 1), "k-.", label=f"l^{d - 1}")
+        ax.set(xlabel="l", ylabel="std in a sub-box", title=name)
+        ax.legend(fontsize=6)
+    return fig
+
+
+def _by_size(systems):
+    return sorted(systems.items(), key=lambda t: t[1]["attrs"]["n"])
+
+
+def hertz(plt, systems, fits):
+    """Hertzian contacts: dz ~ p^(1/3), omega* ~ p^(1/2), D0 ~ p^(-1/6)."""
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+    for k, (name, s) in enumerate(_by_size(systems)):
+        labs = states(s, "p")
+        p = table(s, labs, "network", "pressure")
+        for ax, (key, y, theory) in zip(axes, (
+                ("dz", table(s, labs, "network", "dz_iso"), 1 / 3),
+                ("omega_star", table(s, labs, "spectrum", "omega_star", "relaxed"), 1 / 2),
+                ("D0", table(s, labs, "spectrum", "D0", "full"), -1 / 6))):
+            f = fit_power(p, y)
+            fits[f"hertz/{key}/{name}"] = f
+            ax.loglog(p.ravel(), y.ravel(), "o", ms=3, alpha=0.6, color=f"C{k}")
+            x = np.geomspace(p.min(), p.max(), 20)
+            ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
+                      label=f"N = {s['attrs']['n']}: {law(f)} (theory {theory:.3g})")
+            ax.set(xlabel="p", ylabel=key, title=f"Hertz, alpha = 5/2: {key}")
+            ax.legend(fontsize=7)
+    return fig
+
+
+def softmodes(plt, systems, fits):
+    """f(x) over sizes and its lower bound c; trial-mode energies against omega_L^2."""
+    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.5))
+    Ls, emax, emean, wl2 = [], [], [], []
+    for k, (name, s) in enumerate(_by_size(systems)):
+        g = s["phi_c"]["softmodes"]
+        ov = g["overlap"]  # members x bins x 3
+        x, f = ov[0, :, 0], ov[:, :, 1].mean(axis=0)
+        axes[0].plot(x, f, "-o", ms=3, label=f"N = {s['attrs']['n']}")
+        c = g["c"]
+        fits[f"softmodes/{name}"] = {"c_mean": float(np.mean(c)),
+                                     "c_err": float(np.std(c) / np.sqrt(len(c))),
+                                     "c_nontrivial": float(np.mean(g["c_nontrivial"])),
+                                     "q_prime_over_q": float(np.mean(g["q_prime_over_q"])),
+                                     "trial_max_over_omega_L2": float(np.nanmax(
+                                         g["trial_energy_max"] / g["omega_L2"])),
+                                     "excess": [int(v) for v in s["phi_c"]["network"]["excess"]]}
+        Ls.append(np.mean(g["L"]))
+        te = g["trial_energy"]
+        emean.append(np.nanmean(te[g["extension"] > 0.1]))
+        emax.append(np.nanmean(g["trial_energy_max"]))
+        wl2.append(np.mean(g["omega_L2"]))
+    axes[0].set(xlabel="x / L", ylabel="f(x)", title="overlap function, cut cube")
+    axes[0].legend(fontsize=7)
+    Ls = np.array(Ls)
+    axes[1].loglog(Ls, emean, "o-", label=r"mean $\langle\delta R^*|M|\delta R^*\rangle$ (e > 0.1)")
+    axes[1].loglog(Ls, emax, "s-", label="max trial energy")
+    axes[1].loglog(Ls, wl2, "k--", label=r"$\omega_L^2$ (Eq. kkk)")
+    if len(Ls) > 1:
+        ordered = [s for _, s in _by_size(systems)]
+        m = min(len(s["phi_c"]["softmodes"]["L"]) for s in ordered)
+        X = np.array([s["phi_c"]["softmodes"]["L"][:m] for s in ordered]).T
+        Y = np.array([s["phi_c"]["softmodes"]["omega_t2"][:m] for s in ordered]).T
+        fits["softmodes/trial_energy_vs_L"] = {**fit_power(X, Y), "theory": -2.0}
+    axes[1].set(xlabel="L", ylabel="energy", title="trial modes vs $\\omega_L^2$")
+    axes[1].legend(fontsize=7)
+    return fig
+
+
+_SOFT_KEYS = ("overlap", "c", "c_nontrivial", "q_prime_over_q", "trial_energy_max", "omega_L2",
+              "L", "trial_energy", "extension", "omega_t2")
+
+
+@dataclass(frozen=True)
+class Figure:
+    name: str  # drawn to repro_<name>.png
+    group: str  # key of SCENES
+    draw: Callable  # draw(plt, systems, fits) -> matplotlib Figure; fills fits
+    needs: Callable  # needs(summary) -> bool: the system has this figure's data
+    what: str  # one line for --help
+
+
+#: every figure, in drawing order (eq33 before diag: diag draws the Eq. (33) stability line)
+FIGURES = {f.name: f for f in (
+    Figure("fig1", "paper", fig1,
+           lambda s: any(_get(s, lab, "spectrum", "full", "dos") is not None
+                         for lab in FIG1_STATES),
+           "Fig. 1: D(omega) of the full matrix, dphi = 1e-1 .. 1e-8"),
+    Figure("compare", "paper", compare,
+           lambda s: any(_compare_ok(s, lab) for lab in COMPARE_STATES),
+           "Fig. 'compare': full vs relaxed D(omega) at dphi = 1e-1, 1e-2, 1e-3"),
+    Figure("sans", "paper", sans,
+           lambda s: _has(s, _sans_states(s), ("network", "dz_iso"),
+                          ("spectrum", "relaxed", "omega_star")),
+           "Fig. 'sans': omega* (relaxed) against dz, power-law fit"),
+    Figure("trans", "paper", trans, _trans_ok,
+           "Fig. 'trans': eps_perp and eps_par per mode at dphi = 1e-8"),
+    Figure("eq33", "paper", eq33, _eq33_ok, "Eq. (33): omega_AM^2 = A1 dz^2 - A2 p"),
+    Figure("diag", "paper", diag,
+           lambda s: _has(s, _diag_states(s), ("network", "dz_iso"), ("network", "pressure")),
+           "Fig. 'diag' / Eq. (22): dz = C0 p^(1/2)"),
+    Figure("fluct", "paper", fluct, _fluct_ok,
+           "contact-number fluctuations in sub-boxes against l"),
+    Figure("hertz", "hertz", hertz,
+           lambda s: _has(s, states(s, "p"), ("network", "dz_iso"), ("network", "pressure"),
+                          ("spectrum", "relaxed", "omega_star"), ("spectrum", "full", "D0")),
+           "Hertz (alpha = 5/2): dz, omega*, D0 against p"),
+    Figure("softmodes", "softmodes", softmodes,
+           lambda s: all(_get(s, "phi_c", "softmodes", k) is not None for k in _SOFT_KEYS)
+           and _get(s, "phi_c", "network", "excess") is not None,
+           "soft modes of cut cubes: f(x), trial energies against omega_L^2"),
+)}
+
+
+def available(groups, names=None):
+    """{figure name: {system: summary}} of the figures (all, or ``names``) with data."""
+    out = {}
+    for name in names or FIGURES:
+        fig = FIGURES[name]
+        systems = {n: s for n, s in groups[fig.group].items() if fig.needs(s)}
+        if systems:
+            out[name] = systems
+    return out
+
+
+def save(plt, fig, path):
+    """tight layout, PNG at DPI through a temporary name (no partial file), figure closed."""
+    with atomic_png(path) as tmp:
+        fig.tight_layout()
+        fig.savefig(tmp, dpi=DPI, format="png")
+    plt.close(fig)
+    return path
+
+
+def draw(groups, img, names=None, fits=None, out=None):
+    """Draw the figures ``names`` (default: every figure with data) of ``groups``
+    (read_results) to ``img``/repro_<name>.png (or to ``out`` for a single figure); their fits
+    go into ``fits``.  Returns (paths written, fits)."""
+    fits = {} if fits is None else fits
+    plt = pyplot()
+    made = []
+    for name, systems in available(groups, names).items():
+        fig = FIGURES[name].draw(plt, systems, fits)
+        made.append(save(plt, fig, out or os.path.join(img, f"repro_{name}.png")))
+    return made, fits
+
+
+def sizes(groups, fits):
+    """size/<system>: N and members of every system read."""
+    for g in groups.values():
+        for name, s in g.items():
+            fits[f"size/{name}"] = {"N": int(s["attrs"]["n"]),
+                                    "members": int(s["attrs"]["members"])}
+    return fits
+
+
+def write_json(path, fits):
+    """The fits as JSON (indent 1), written through a temporary name."""
+    path = os.path.abspath(path)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    tmp = os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "w") as fh:
+            json.dump(fits, fh, indent=1)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def reproduce(results, img, json_path=None, names=None):
+    """Every figure (or ``names``) with data under ``results`` drawn to ``img``, its fits and
+    the sizes of the systems (written to ``json_path`` if given).  Returns (paths, fits)."""
+    groups = read_results(results)
+    made, fits = draw(groups, img, names)
+    sizes(groups, fits)
+    if json_path:
+        write_json(json_path, fits)
+    return made, fits
