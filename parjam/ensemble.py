@@ -32,22 +32,37 @@ def member_states(args, member, comm, progress):
             states = [jammer.at_phi(args.phi, f"phi{args.phi:.4f}")]
             protocol = "quench"
         else:
-            phic = jammer.find_phi_c()
-            phi_c = phic.info["phi_c"]
-            progress(f"phi_c = {phi_c:.10f} after {phic.info['iterations']} minimisations")
-            states = [] if args.no_phic_file else [phic]
+            phi_c, states, search = find_phi_c(jammer, args, progress)
             if args.pressure:
-                protocol = "ohern-bisection+pressure"
+                protocol = f"{search}+pressure"
                 for p in sorted(args.pressure):
                     states.append(jammer.at_pressure(p, phi_c))
             else:
-                protocol = "ohern-bisection+ladder"
+                protocol = f"{search}+ladder"
                 states += jammer.ladder(phi_c, args.dphi, args.ladder)
         totals = {"fire_steps": jammer.total_fire, "newton_steps": jammer.total_newton,
                   "force_evaluations": jammer.ff.n_force_calls}
     finally:
         jammer.destroy()
     return states, protocol, totals
+
+
+def find_phi_c(jammer, args, progress):
+    """(phi_c, [the phi_c state to write, if any], protocol name) by the chosen search."""
+    if args.phic_method == "extrapolate":
+        if args.pressure:  # p ~ dphi^(alpha-1) with a prefactor of order one
+            stop = min(p ** (1.0 / (args.alpha - 1.0)) for p in args.pressure)
+        else:
+            stop = min(args.dphi)
+        st = jammer.find_phi_c_from_above(stop)
+        phi_c = st.info["phi_c"]
+        progress(f"phi_c = {phi_c:.10f} (extrapolated from dphi = {st.info['dphi_est']:.2e}) "
+                 f"after {st.info['iterations']} minimisations")
+        return phi_c, [], "virial-extrapolation"
+    phic = jammer.find_phi_c()
+    phi_c = phic.info["phi_c"]
+    progress(f"phi_c = {phi_c:.10f} after {phic.info['iterations']} minimisations")
+    return phi_c, ([] if args.no_phic_file else [phic]), "ohern-bisection"
 
 
 REL_FORCE_WARN = 1e-4  # max|F| / mean contact force above this: force balance is poor

@@ -41,6 +41,9 @@ def run_parameters(args):
         "ladder": args.ladder, "phi_start": float(args.phi_start), "ftol": float(args.ftol),
         "energy_window": [float(x) for x in args.energy_window],
         "no_phic_file": bool(args.no_phic_file),
+        # only when not the default, so that directories written before the option resume
+        **({"phic_method": args.phic_method}
+           if getattr(args, "phic_method", "bisect") != "bisect" else {}),
     }
 
 

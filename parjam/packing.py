@@ -99,6 +99,9 @@ class Jammer:
         self.ff.set_positions(self.pack.pos)
         self.total_fire = 0
         self.total_newton = 0
+        # minimiser steps: a line every 10 s at most (only long minimisations show them)
+        throttled = getattr(progress, "throttled", None)
+        self._inner = throttled(10.0) if throttled is not None else None
 
     def _log(self, msg):
         if self.progress is not None:
@@ -112,7 +115,7 @@ class Jammer:
             self.ff.set_positions(self.pack.pos)
         try:
             res = minimize.minimise(self.ff, self.settings.ftol, e_stop,
-                                   fire_rel=self.settings.fire_rel)
+                                   fire_rel=self.settings.fire_rel, progress=self._inner)
         except ValueError as exc:  # e.g. a box too small for the neighbour search
             raise ParjamError(f"at phi = {self.pack.phi:.10f}: {exc}", collective=False) from None
         self.total_fire += res.fire_steps
@@ -173,15 +176,72 @@ class Jammer:
         raise ParjamError(f"phi_c bisection did not land in the energy window after "
                           f"{s.max_iter} steps (bracket {lo:.14f}..{hi:.14f})", collective=False)
 
+    def find_phi_c_from_above(self, dphi_stop, ratio=10.0):
+        """phi_c by decompression and extrapolation, for sizes where the bisection is too slow.
+
+        From a jammed minimum at phi, the virial relation of a fixed contact network gives the
+        distance to jamming, phi - phi_c = alpha E phi / (p V) (E ~ dphi^alpha, p ~ dphi^(alpha-1),
+        O'Hern et al. 2003).  Each step decompresses to phi_c,est + max(dphi_stop, dphi_est/ratio)
+        and re-minimises from the previous minimum (few rearrangements per step), until the
+        estimate is within a factor 1.5 of dphi_stop; phi_c is then the last extrapolation.
+        Returns the State reached (about dphi_stop above phi_c)."""
+        with log_stage("pack: phi_c extrapolation"):
+            return self._find_phi_c_from_above(dphi_stop, ratio)
+
+    def _jammed_start(self):
+        """Minimise at the current phi, compressing by 0.01 until the packing is jammed."""
+        s = self.settings
+        for _ in range(100):
+            res = self.relax(self.pack.phi, e_stop=s.e_low * self.pack.n)
+            if res.status != "unjammed":
+                return res
+            if self.pack.phi + 0.01 > PHI_MAX[self.pack.d]:
+                break
+            self.pack = self.pack.rescaled(self.pack.phi + 0.01)
+        raise UnjammedError(f"no jammed state below phi = {PHI_MAX[self.pack.d]}",
+                            collective=False)
+
+    def _find_phi_c_from_above(self, dphi_stop, ratio):
+        s = self.settings
+        res = self._jammed_start()
+        jammed_phi = self.pack.phi
+        for it in range(1, s.max_iter + 1):
+            if not res.ok:
+                raise ParjamError(f"minimisation did not converge at phi = {self.pack.phi:.10f} "
+                                  f"(max|F| = {res.fmax:.2e})", collective=False)
+            phi = self.pack.phi
+            excess = self._virial_excess(res.energy)
+            phi_c = phi - excess
+            self._log(f"phi_c extrapolation {it}: phi = {phi:.12f}, dphi_est = {excess:.3e}, "
+                      f"phi_c,est = {phi_c:.12f}")
+            if excess <= 1.5 * dphi_stop:
+                return self.state(res, "phi_c,est", phi_c=phi_c, dphi_est=excess, iterations=it,
+                                  phi_c_method="virial extrapolation from above")
+            target = phi_c + max(dphi_stop, excess / ratio)
+            res = self.relax(target, e_stop=s.e_low * self.pack.n * 1e-6)
+            if res.status == "unjammed":  # overshot (the network changed): back half way
+                res = self.relax(0.5 * (target + jammed_phi))
+                ratio = max(2.0, ratio / 2.0)
+            jammed_phi = self.pack.phi
+        raise ParjamError(f"phi_c extrapolation did not reach dphi = {dphi_stop:g} in "
+                          f"{s.max_iter} steps", collective=False)
+
+    def _virial_excess(self, energy):
+        """phi - phi_c = alpha E phi / (p V) of a jammed state with a fixed contact network."""
+        p = self.pressure()
+        if p <= 0 or energy <= 0:
+            raise UnjammedError(f"no pressure at phi = {self.pack.phi:.10f}", collective=False)
+        return self.pack.alpha * energy * self.pack.phi / (p * self.pack.volume)
+
     def _predict_phi(self, energy):
         """Volume fraction where E/N reaches the middle of the window, from the virial relation
         E/(dE/dphi) = (phi - phi_c)/alpha of a jammed state with a fixed contact network."""
         s = self.settings
-        p = self.pressure()
-        phi = self.pack.phi
-        if p <= 0 or energy <= 0:
+        try:
+            excess = self._virial_excess(energy)
+        except UnjammedError:
             return -1.0
-        excess = self.pack.alpha * energy * phi / (p * self.pack.volume)
+        phi = self.pack.phi
         target = 0.5 * (s.e_low + s.e_high) * self.pack.n
         return phi - excess + excess * (target / energy) ** (1.0 / self.pack.alpha)
 

@@ -20,3 +20,16 @@ class Progress:
         child = Progress(quiet=not self.enabled, prefix=self.prefix + prefix)
         child.t0 = self.t0
         return child
+
+    def throttled(self, interval=10.0):
+        """A callable printing at most once per ``interval`` seconds (for inner loops such as
+        FIRE steps, whose count per second varies by orders of magnitude with N)."""
+        last = [time.time()]
+
+        def emit(msg):
+            now = time.time()
+            if now - last[0] >= interval:
+                last[0] = now
+                self(msg)
+
+        return emit

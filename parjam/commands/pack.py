@@ -33,6 +33,11 @@ def add_parser(sub):
                    "1e-6 1e-4 1e-2)")
     g.add_argument("--pressure", type=float, nargs="+", help="target pressures instead")
     g.add_argument("--phi", type=float, help="quench at this fixed phi only (no phi_c search)")
+    p.add_argument("--phic-method", choices=("bisect", "extrapolate"), default="bisect",
+                   help="bisect: O'Hern bisection to E/N in --energy-window (exact, slow for "
+                   "large N); extrapolate: decompress from a jammed start at --phi-start, "
+                   "phi_c = phi - alpha E phi/(p V) from the state nearest the smallest dphi "
+                   "(no phi_c file; for large N at dphi >= 1e-4)")
     p.add_argument("--ladder", choices=("compress", "decompress"), default="compress",
                    help="compress up from phi_c, or decompress from the largest dphi downwards")
     p.add_argument("--phi-start", type=float, help="phi of the random start (0.86 in 2D, "
@@ -86,6 +91,11 @@ def validate(args):
             raise ParjamError(f"--pressure values must lie in (0, 10), got {p}")
     if args.phi is None and args.pressure is None and args.dphi is None:
         args.dphi = [1e-6, 1e-4, 1e-2]
+    if args.phic_method == "extrapolate" and args.phi is not None:
+        raise ParjamError("--phic-method extrapolate needs --dphi or --pressure, not --phi")
+    if args.phic_method == "extrapolate" and args.dphi and min(args.dphi) < 1e-6:
+        raise ParjamError(f"--phic-method extrapolate is meant for dphi >= 1e-6 (got "
+                          f"{min(args.dphi):g}): use the bisection closer to jamming")
     if args.phi_start is None:
         args.phi_start = DEFAULT_PHI_START[args.dim]
 
