@@ -78,7 +78,7 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None):
         ff.x.axpy(dt, v)  # positions are folded back into the box at the end
         energy = ff.evaluate(f)
         fmax = ff.max_norm(f)
-        if progress is not None and step % 2000 == 0:
+        if progress is not None and step % 100 == 0:
             progress(f"FIRE step {step}: E/N = {energy / ff.n:.3e}, max|F| = {fmax:.3e}")
     ff.wrap()
     for vec in (f, v):
@@ -183,8 +183,9 @@ def newton(ff, ftol, max_steps=60, progress=None):
             ff.wrap()
             e_new = ff.evaluate(f_trial)
             fmax_new = ff.max_norm(f_trial)
+            # within round-off of the energy its comparison is noise: judge by the force
             flat = abs(e_new - energy) <= 1e-13 * abs(energy) + 1e-300
-            if e_new < energy or (flat and fmax_new < fmax):
+            if (e_new < energy and not flat) or (flat and fmax_new < fmax):
                 accepted = True
                 break
             s *= 0.5
