@@ -158,7 +158,6 @@ def newton(ff, ftol, max_steps=60, progress=None):
     status = "not converged"
     step = 0
     mu_scale = 1.0
-    failures = 0
     tight = 0.1 * ftol  # aim below the tolerance; stop at ftol only when progress stalls
     for step in range(1, max_steps + 1):
         if fmax <= tight:
@@ -193,13 +192,15 @@ def newton(ff, ftol, max_steps=60, progress=None):
             x0.copy(ff.x)
             ff.wrap()
             mu_scale *= 100.0
-            failures += 1
-            if mu_scale > 1e12 or (fmax <= ftol and failures >= 3):
+            if mu_scale > 1e12 or fmax <= ftol:  # below ftol already: one failure is the floor
                 break
             continue
         mu_scale = max(1.0, mu_scale / 10.0)
         f_trial.copy(f)
+        stalled = fmax_new <= ftol and fmax_new > 0.5 * fmax  # at the round-off floor
         energy, fmax = e_new, fmax_new
+        if stalled:
+            break
         if progress is not None:
             progress(f"Newton step {step}: E/N = {energy / ff.n:.3e}, max|F| = {fmax:.3e}")
     if fmax <= ftol:
