@@ -86,22 +86,35 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None):
     return MinResult(status, energy, fmax, fire_steps=step)
 
 
+# Above this many degrees of freedom Newton solves with CG + GAMG instead of a MUMPS LDL^T.
+# 3D N = 32768 quench at phi = 0.66 (98k dof, one rank): the Newton phase took 120 s with CG
+# against 380 s with MUMPS (21-35 s per factorisation), same minimum (docs/bench-pack.md).
+NEWTON_CG_DOF = 60000
+
+
 def _linear_solver(ff, H):
     """KSP (preonly + Cholesky/LDL^T, MUMPS when available; options prefix ``newton_``) kept on
     the force field, so that a refilled Hessian with the same pattern is refactorised
-    numerically only."""
+    numerically only.  Above NEWTON_CG_DOF, or with ``-newton_ksp_type cg -newton_pc_type gamg``,
+    preconditioned CG replaces the factorisation (no fill: for very large N); its
+    negative-curvature exit then gates Newton instead of the inertia."""
     PETSc = env.petsc()
     ksp = ff.newton_ksp
     if ksp is None:
         ksp = PETSc.KSP().create(comm=ff.comm)
         ksp.setOptionsPrefix("newton_")
-        ksp.setType("preonly")
         pc = ksp.getPC()
-        pc.setType("cholesky")
-        if env.has_mumps():
-            pc.setFactorSolverType("mumps")
-        elif ff.comm.getSize() == 1:
-            pc.setType("lu")
+        if ff.n * ff.d > NEWTON_CG_DOF:
+            ksp.setType("cg")
+            pc.setType("gamg")
+            ksp.setTolerances(rtol=1e-8, max_it=5000)
+        else:
+            ksp.setType("preonly")
+            pc.setType("cholesky")
+            if env.has_mumps():
+                pc.setFactorSolverType("mumps")
+            elif ff.comm.getSize() == 1:
+                pc.setType("lu")
         ksp.setFromOptions()
         ff.newton_ksp = ksp
     ksp.setOperators(H)
@@ -172,6 +185,12 @@ def newton(ff, ftol, max_steps=60, progress=None):
         ksp = ff.newton_ksp
         _remove_translations(ff, f)
         ksp.solve(f, dx)
+        if ksp.getConvergedReason() < 0:
+            # an iterative KSP (e.g. -newton_ksp_type cg -newton_pc_type gamg) met negative
+            # curvature (KSP_DIVERGED_INDEFINITE_*) or did not converge: the same gate as the
+            # inertia of a factorisation
+            status = "saddle"
+            break
         _remove_translations(ff, dx)
         ff.x.copy(x0)
         accepted = False

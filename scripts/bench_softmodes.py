@@ -7,8 +7,8 @@ the same run.  Run by hand, never in the test suite:
     .venv/bin/python scripts/bench_softmodes.py [--sizes 1024 4096 16384] [--ranks 1 2]
         [--dense-max 4096] [--out docs/bench-softmodes.md]
 
-Missing packings are made with ``parjam pack --dim 3 --n N --dphi 1e-8`` under bench-out/
-(N = 16384 takes a long while).  Each (N, ranks) run is a separate ``mpirun`` of the command line;
+Missing packings are made with ``parjam pack --dim 3 --n N --dphi 1e-8 --phic-method
+extrapolate --seed 1`` under bench-out/ (the bisection takes hours at N = 16384 here).  Each (N, ranks) run is a separate ``mpirun`` of the command line;
 its stage times and peak memory per rank come from the output file.  The dense baseline runs in
 its own process (one thread, like one rank) and also checks that both bases span the same space.
 """
@@ -30,12 +30,15 @@ def packing_path(workdir, n):
     return os.path.join(workdir, f"soft{n}", "member0000_dphi1.0e-08.h5")
 
 
-def ensure_packing(workdir, n):
+def ensure_packing(workdir, n, phic_method="extrapolate"):
     path = packing_path(workdir, n)
     if not os.path.exists(path):
         print(f"making the N = {n} packing (slow for large N) ...", flush=True)
+        t0 = time.time()
         subprocess.run([PARJAM, "pack", "--dim", "3", "--n", str(n), "--dphi", "1e-8",
-                        "--members", "1", "--out", os.path.dirname(path), "-q"], check=True)
+                        "--phic-method", phic_method, "--members", "1", "--seed", "1",
+                        "--out", os.path.dirname(path)], check=True)
+        print(f"N = {n} packing: {time.time() - t0:.0f} s", flush=True)
     return path
 
 
@@ -136,7 +139,8 @@ def markdown(rows, dense, host):
         "# Benchmark: `parjam softmodes` (3D, one cut at x = L/2)",
         "",
         "Made by `scripts/bench_softmodes.py` (run by hand; see its docstring). Near-isostatic "
-        "packings (`parjam pack --dim 3 --n N --dphi 1e-8`), rattlers removed, one plane cut at "
+        "packings (`parjam pack --dim 3 --n N --dphi 1e-8 --phic-method extrapolate --seed 1`), "
+        "rattlers removed, one plane cut at "
         "x = L/2. parjam: MUMPS inertia count at two thresholds, SLEPc Krylov-Schur "
         "shift-and-invert basis with the translations deflated, Eq. 3 residuals, extension, "
         "f(x) and trial modes. Baseline: dense LAPACK SVD of the rigidity matrix S (numpy, "

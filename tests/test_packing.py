@@ -187,3 +187,35 @@ def test_pack_cli_extrapolate_writes_ladder_without_phi_c_file(shared_tmp):
     bad = cli.main(["pack", "--dim", "3", "--n", "64", "--phi", "0.7", "--phic-method",
                     "extrapolate", "--out", os.path.join(shared_tmp, "extrap-bad"), "-q"])
     assert bad != 0
+
+
+def test_newton_with_cg_gamg_reaches_the_same_minimum():
+    """-newton_ksp_type cg -newton_pc_type gamg (no factorisation, for very large N) converges
+    to the same minimum as the default MUMPS LDL^T from the same FIRE hand-over."""
+    from parjam.ensemble import member_rng
+    from parjam.packing import Jammer, random_packing
+
+    PETSc = env.petsc()
+    opts = PETSc.Options()
+    out = []
+    for cg in (False, True):
+        if cg:
+            opts["newton_ksp_type"] = "cg"
+            opts["newton_pc_type"] = "gamg"
+            opts["newton_ksp_rtol"] = 1e-10
+        try:
+            jam = Jammer(PETSc.COMM_SELF, random_packing(3, 256, 0.70, 2.0, "mono", 1.4,
+                                                         member_rng(9, 0)))
+            st = jam.at_phi(0.70, "q")
+            assert jam.ff.newton_ksp.getType() == ("cg" if cg else "preonly")
+            out.append((st.pack, st.result, jam.total_newton))
+            jam.destroy()
+        finally:
+            for key in ("newton_ksp_type", "newton_pc_type", "newton_ksp_rtol"):
+                opts.delValue(key)
+    (p0, r0, n0), (p1, r1, n1) = out
+    assert r0.fmax <= 1e-13 and r1.fmax <= 1e-13
+    assert n0 > 0 and n1 > 0  # Newton did run in both
+    d = p1.pos - p0.pos
+    d -= p0.L * np.rint(d / p0.L)
+    assert np.abs(d).max() < 1e-8
