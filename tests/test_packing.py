@@ -219,3 +219,21 @@ def test_newton_with_cg_gamg_reaches_the_same_minimum():
     d = p1.pos - p0.pos
     d -= p0.L * np.rint(d / p0.L)
     assert np.abs(d).max() < 1e-8
+
+
+def test_random_start_numbers_neighbours_nearby():
+    """Particles are numbered cell by cell (parjam.packing.spatial_order): the index distance
+    of neighbour pairs is small against N (random numbering: ~N/3), every cell's particles are
+    contiguous, and bidisperse species stay mixed in space."""
+    from parjam.ensemble import member_rng
+    from parjam.forces import neighbour_pairs
+    from parjam.packing import random_packing
+
+    pack = random_packing(3, 8000, 0.66, 2.0, "bi", 1.4, member_rng(3, 0))
+    pairs = neighbour_pairs(pack.pos, pack.L, 1.4)
+    gap = np.abs(pairs[:, 0] - pairs[:, 1])
+    assert np.median(gap) < 0.05 * pack.n
+    species = pack.meta["species"]
+    assert species.sum() == pack.n // 2
+    half = pack.pos[:, 0] < 0.5 * pack.L  # each half-box holds both species in equal parts
+    assert abs(species[half].mean() - 0.5) < 0.05
