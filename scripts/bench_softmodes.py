@@ -46,7 +46,7 @@ def run_parjam(path, n, ranks, workdir, vectors):
     out = os.path.join(workdir, f"soft{n}_r{ranks}.h5")
     mpirun = shlex.split(os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe"))
     cmd = mpirun + ["-n", str(ranks), PARJAM, "softmodes", path, "--cut", "x=0.5", "--out", out,
-                    "-q"] + (["--vectors"] if vectors else [])
+                    "-q", "--allow-hyperstatic"] + (["--vectors"] if vectors else [])
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
@@ -154,14 +154,15 @@ def markdown(rows, dense, host):
         f"Machine: {host}. The 2 cores were shared with other jobs while this ran, so wall "
         "times are upper bounds and 2-rank runs suffer most from the sharing.",
         "",
-        "| N | N' | q | null space (d+q-1) | ranks | wall s | count s | basis s | analysis s "
+        "| N | N' | Nc - Nc_iso | q | null space (d+q-1) | ranks | wall s | count s | basis s | analysis s "
         "| SLEPc its | peak MB/rank | Eq. 3 residual | dense SVD s | dense peak MB "
         "| dense / parjam (1 rank, count + basis) | subspace min cos |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['n']} | {r['N_active']} | {r['q']} | {r['count']} ({r['expected']}) | "
+            f"| {r['n']} | {r['N_active']} | {r['excess']:+d} | {r['q']} | "
+            f"{r['count']} ({r['expected']}) | "
             f"{r['ranks']} | {r['wall']:.1f} | {r['t_count']:.2f} | {r['t_null']:.1f} | "
             f"{r['t_analysis']:.2f} | {r['iterations']} | {r['rss']:.0f} | {r['eq3']:.1e} | "
             + dense_cells(r, dense.get(r["n"])) + " |")
