@@ -88,7 +88,7 @@ from parjam import env, io, softmodes as sm
 env.init()
 path, basis_file = sys.argv[1], sys.argv[2]
 pack = io.read_packing(path)
-cs = sm.prepare(pack, [sm.Plane(0, 0.5)])
+cs = sm.prepare(pack, [sm.Plane(0, 0.5)], allow_hyperstatic=True)
 t0 = time.perf_counter()
 S = sm.dense_rigidity(cs, cs.kept)
 if basis_file != "-":  # count and basis: the same job as parjam
