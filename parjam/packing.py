@@ -206,14 +206,14 @@ class Jammer:
 
     def _jammed_start(self):
         """Minimise at the current phi, compressing by 0.01 until the packing is jammed."""
-        s = self.settings
-        for _ in range(100):
-            res = self.relax(self.pack.phi, e_stop=s.e_low * self.pack.n)
+        phi = self.pack.phi
+        while True:
+            res = self.relax(phi, e_stop=self.settings.e_low * self.pack.n)
             if res.status != "unjammed":
                 return res
-            if self.pack.phi + 0.01 > PHI_MAX[self.pack.d]:
+            phi += 0.01
+            if phi > PHI_MAX[self.pack.d]:
                 break
-            self.pack = self.pack.rescaled(self.pack.phi + 0.01)
         raise UnjammedError(f"no jammed state below phi = {PHI_MAX[self.pack.d]}",
                             collective=False)
 
