@@ -474,7 +474,8 @@ class Stage:
     def solvers(self):
         if self.kind != "spectrum":
             return {"pack": "FIRE + Newton (MUMPS), O'Hern bisection", "network": "numpy",
-                    "moduli": "PETSc CG + MUMPS", "softmodes": "MUMPS inertia + SLEPc sinvert",
+                    "moduli": "PETSc CG + MUMPS",
+                    "softmodes": "MUMPS inertia + block inverse iteration",
                     "fluctuations": "numpy", "summary": "numpy"}.get(self.kind, "")
         return {s: self.params[s]["solver"] for s in self.states}
 

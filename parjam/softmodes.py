@@ -14,8 +14,10 @@ Pipeline (every step distributed over the ranks of ``comm``; rows split as in
    them) and compared with q + d - 1 (isostatic: the q cuts open q floppy modes, the first one
    also kills the packing's single self-stress, plus the d translations).
 3. The basis orthogonal to the d global translations (the "trivial" modes, deflated) comes from
-   SLEPc shift-and-invert at a small negative target with MUMPS (:func:`null_basis`); each
-   vector is checked against Eq. 3 on the remaining contacts (:func:`eq3_residual`).
+   block inverse iteration with one MUMPS factor of M + tau I, tau = 1e-8 k, and a
+   Rayleigh-Ritz step (:func:`null_basis_block`), or from SLEPc shift-and-invert
+   (:func:`null_basis_krylov`); each vector is checked against Eq. 3 on the remaining contacts
+   (:func:`eq3_residual`), and the gap above the null space comes from the same factor.
 4. Extension e = sum_i g_i^2 |dR_i|^2, g the sine modulation that vanishes on the planes
    (:func:`modulation`; g = sin(pi x / L) for one plane, x measured from it).  The Appendix's
    extended subspace (remove the mode of smallest <dR|G|dR> until all exceed e0) is the
@@ -327,7 +329,21 @@ class NullBasis:
     solver: str
 
 
-def null_basis(comm, M, d, n_soft, scale, prefix="soft_", margin=4, tol=1e-12):
+BASIS_METHODS = ("block", "krylov")
+
+
+def null_basis(comm, M, d, n_soft, scale, method="block"):
+    """The n_soft null vectors of M orthogonal to the d translations (a :class:`NullBasis`), by
+    block inverse iteration (``block``, the default; much faster for hundreds of modes, see
+    docs/bench-softmodes.md) or by SLEPc Krylov-Schur shift-and-invert (``krylov``)."""
+    if method == "block":
+        return null_basis_block(comm, M, d, n_soft, scale)
+    if method == "krylov":
+        return null_basis_krylov(comm, M, d, n_soft, scale)
+    raise ParjamError(f"unknown basis method {method!r} (choose from {', '.join(BASIS_METHODS)})")
+
+
+def null_basis_krylov(comm, M, d, n_soft, scale, prefix="soft_", margin=4, tol=1e-12):
     """The n_soft null vectors of M orthogonal to the d translations, by SLEPc shift-and-invert
     (Krylov-Schur, target -tau = -1e-8 k, MUMPS Cholesky of M + tau I, translations deflated).
 
@@ -396,6 +412,199 @@ def _eigenvectors(eps, M, k):
     v.destroy()
     order = np.argsort(lam, kind="stable")
     return V[:, order], lam[order]
+
+
+# --------------------------------------------------------------------------- block extraction
+
+def null_basis_block(comm, M, d, n_soft, scale, prefix="soft_", oversample=8, tau=1e-8,
+                     tol=1e-12, passes=3, max_rounds=5, block=512, seed=0):
+    """The n_soft null vectors of M orthogonal to the d translations, by block inverse
+    (subspace) iteration with one MUMPS Cholesky factor of A = M + tau k I.
+
+    Every null vector is amplified by 1/tau per solve, the rest by at most 1/(gap + tau): at
+    tau = 1e-8 k and a gap of ~1e-5..1e-3 k (the inertia check proves >= 1e-6 k), ``passes``
+    solves of n_soft + ``oversample`` right-hand sides leave a contamination of < 1e-9, and a
+    Rayleigh-Ritz step on the result removes the rest.  The solves use MUMPS's multi-RHS path
+    in blocks of ``block`` columns; the orthonormalisation and Rayleigh-Ritz are dense BLAS-3
+    on the local rows.  A Krylov method instead picks up the degenerate null cluster a few
+    vectors per restart and orthogonalises every new vector against all the locked ones
+    (docs/bench-softmodes.md compares the two).  ``-soft_ksp_*``/``-soft_pc_*`` options reach
+    the factorisation, ``-soft_gap_eps_*`` the gap solve.
+    """
+    lo, hi = M.getOwnershipRange()
+    k = min(n_soft + oversample, M.getSize()[0] - d)
+    ksp = _factorised(comm, M, tau * scale, prefix)
+    T = np.stack([t.getArray().copy() for t in translations(M, d)], axis=1)
+    try:
+        X = _random_block(lo, hi, k, seed)
+        for rnd in range(1, max_rounds + 1):
+            for _ in range(passes if rnd == 1 else 1):
+                X = _normalised_columns(comm, _apply_inverse(comm, ksp, _deflated(comm, T, X),
+                                                             block))
+            V, theta, res = _rayleigh_ritz(comm, M, _orthonormal(comm, _deflated(comm, T, X)))
+            if V.shape[1] >= n_soft and res[:n_soft].max() <= tol * scale \
+                    and theta[n_soft - 1] <= 1e-6 * scale:
+                break
+            if V.shape[1] < n_soft:
+                raise ParjamError(f"block inverse iteration kept only {V.shape[1]} of the "
+                                  f"{n_soft} null directions", collective=True)
+            X = V
+        else:
+            raise ParjamError(f"block inverse iteration did not converge in {max_rounds} rounds "
+                              f"(largest residual {res[:n_soft].max() / scale:.1e} k; try "
+                              "--basis krylov)", collective=True)
+        V = V[:, :n_soft]
+        gap = gap_above(comm, ksp, np.concatenate([T, V], axis=1), tau * scale,
+                        prefix + "gap_")
+    finally:
+        ksp.destroy()
+    return NullBasis(V, theta[:n_soft], gap, lo // d, hi // d, passes + rnd - 1,
+                     "block-inverse")
+
+
+def _deflated(comm, T, X):
+    """X with the columns of the orthonormal T projected out."""
+    return X - T @ gram(comm, T, X)
+
+
+def _normalised_columns(comm, X):
+    norms = np.sqrt(allreduce(comm, (X * X).sum(axis=0)))
+    return X / np.maximum(norms, np.finfo(float).tiny)
+
+
+def _factorised(comm, M, shift, prefix):
+    """A KSP whose PC holds the MUMPS Cholesky factor of M + shift I (preonly)."""
+    PETSc = env.petsc()
+    A = M.copy()
+    A.shift(shift)
+    A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+    ksp = PETSc.KSP().create(comm=comm)
+    ksp.setOperators(A)
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType("cholesky")
+    pc.setFactorSolverType("mumps")
+    ksp.setOptionsPrefix(prefix)
+    ksp.setFromOptions()
+    try:
+        ksp.setUp()
+    except PETSc.Error as exc:
+        raise ParjamError(f"the factorisation of M + tau k I failed (PETSc error {exc.ierr}; "
+                          f"check the -{prefix}pc_* options)") from None
+    finally:
+        A.destroy()
+    return ksp
+
+
+def _random_block(lo, hi, k, seed, rows=3072):
+    """Gaussian rows lo..hi-1 of a global n x k matrix drawn in fixed row blocks, so that the
+    start (and the result) does not depend on the number of ranks."""
+    out = np.empty((hi - lo, k))
+    for b in range(lo // rows, (hi - 1) // rows + 1 if hi > lo else lo // rows):
+        block = np.random.default_rng([seed, b]).standard_normal((rows, k))
+        a, z = max(lo, b * rows), min(hi, (b + 1) * rows)
+        out[a - lo:z - lo] = block[a - b * rows:z - b * rows]
+    return out
+
+
+def _apply_inverse(comm, ksp, X, block):
+    """(M + tau I)^-1 X, column block by column block (MUMPS multi-RHS solves)."""
+    PETSc = env.petsc()
+    nloc, k = X.shape
+    n = comm.tompi4py().allreduce(nloc)
+    Y = np.empty_like(X)
+    pc = ksp.getPC()
+    for a in range(0, k, block):
+        z = min(k, a + block)
+        B = PETSc.Mat().createDense(((nloc, n), (PETSc.DECIDE, z - a)), comm=comm,
+                                    array=np.asfortranarray(X[:, a:z]))
+        C = PETSc.Mat().createDense(((nloc, n), (PETSc.DECIDE, z - a)), comm=comm)
+        C.setUp()
+        pc.matApply(B, C)
+        Y[:, a:z] = C.getDenseArray()
+        B.destroy()
+        C.destroy()
+    return Y
+
+
+def _orthonormal(comm, Y, passes=2, drop=1e-13):
+    """An orthonormal basis of span(Y) by SVQB (eigendecomposition of the scaled Gram matrix),
+    applied twice; directions weaker than ``drop`` relative to the strongest are dropped."""
+    for _ in range(passes):
+        G = gram(comm, Y)
+        s = 1.0 / np.sqrt(np.maximum(np.diag(G), np.finfo(float).tiny))
+        lam, W = np.linalg.eigh(G * s[:, None] * s[None, :])
+        keep = lam > drop * lam.max()
+        Y = (Y * s) @ (W[:, keep] / np.sqrt(lam[keep]))
+    return Y
+
+
+def _mat_apply(comm, M, X):
+    """M X for local rows X (dense MatMatMult)."""
+    PETSc = env.petsc()
+    nloc, k = X.shape
+    n = M.getSize()[0]
+    B = PETSc.Mat().createDense(((nloc, n), (PETSc.DECIDE, k)), comm=comm,
+                                array=np.asfortranarray(X))
+    C = M.matMult(B)
+    out = C.getDenseArray().copy()
+    B.destroy()
+    C.destroy()
+    return out
+
+
+def _rayleigh_ritz(comm, M, Q):
+    """Ritz vectors of M in span(Q) (orthonormal), ascending, and their residual norms."""
+    MQ = _mat_apply(comm, M, Q)
+    H = gram(comm, Q, MQ)
+    theta, W = np.linalg.eigh(0.5 * (H + H.T))
+    V, MV = Q @ W, MQ @ W
+    res = np.sqrt(allreduce(comm, ((MV - V * theta) ** 2).sum(axis=0)))
+    return V, theta, res
+
+
+def gap_above(comm, ksp, U, shift, prefix="soft_gap_", tol=1e-8):
+    """Lowest eigenvalue of M in the complement of the orthonormal columns U (translations and
+    null basis): the largest eigenvalue 1 / (lambda + shift) of P A^-1 P, P = I - U U^T, by
+    SLEPc Krylov-Schur on a shell operator that reuses the factor in ``ksp``."""
+    PETSc, SLEPc = env.petsc(), env.slepc()
+    A = ksp.getOperators()[0]
+    if A.getSize()[0] - U.shape[1] <= 0:
+        return np.inf
+    op = PETSc.Mat().createPython(A.getSizes(), _ProjectedInverse(comm, ksp, U), comm=comm)
+    op.setUp()
+    eps = SLEPc.EPS().create(comm=comm)
+    try:
+        eps.setOperators(op)
+        eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
+        eps.setDimensions(1, PETSc.DECIDE)
+        eps.setWhichEigenpairs(SLEPc.EPS.Which.LARGEST_MAGNITUDE)
+        eps.setTolerances(tol)
+        eps.setOptionsPrefix(prefix)
+        eps.setFromOptions()
+        eps.solve()
+        if not eps.getConverged():
+            return np.nan
+        return float(1.0 / eps.getEigenvalue(0).real - shift)
+    finally:
+        eps.destroy()
+        op.destroy()
+
+
+class _ProjectedInverse:
+    """y = P A^-1 P x with P = I - U U^T (petsc4py shell-matrix context)."""
+
+    def __init__(self, comm, ksp, U):
+        self.comm, self.ksp, self.U = comm, ksp, U
+        self.work = ksp.getOperators()[0].createVecRight()
+
+    def _project(self, a):
+        return a - self.U @ allreduce(self.comm, self.U.T @ a)
+
+    def mult(self, mat, x, y):
+        self.work.setArray(self._project(x.getArray(readonly=True)))
+        self.ksp.solve(self.work, y)
+        y.setArray(self._project(y.getArray(readonly=True)))
 
 
 # --------------------------------------------------------------------------- checks
@@ -688,8 +897,9 @@ class SoftModes:
         }
 
 
-def analyse(comm, cs, e0=0.1, nbins=10, progress=None):
-    """Count, extract and characterise the soft modes of the cut system ``cs``."""
+def analyse(comm, cs, e0=0.1, nbins=10, progress=None, basis="block"):
+    """Count, extract and characterise the soft modes of the cut system ``cs``; ``basis``
+    chooses the null-space method (:func:`null_basis`)."""
     import time
 
     PETSc = env.petsc()
@@ -714,14 +924,14 @@ def analyse(comm, cs, e0=0.1, nbins=10, progress=None):
     t0 = time.perf_counter()
     stage = PETSc.Log.Stage("softmodes: null space")
     stage.push()
-    nb = null_basis(comm, M, d, n_soft, scale)
+    nb = null_basis(comm, M, d, n_soft, scale, basis)
     S = rigidity_matrix(comm, cs, cs.kept)
     eq3 = eq3_residual(comm, S, nb.V)
     S.destroy()
     M.destroy()
     stage.pop()
     times["null_space"] = time.perf_counter() - t0
-    log(f"{n_soft} soft modes from SLEPc ({nb.solver}, {nb.iterations} iterations), "
+    log(f"{n_soft} soft modes ({nb.solver}, {nb.iterations} iterations), "
         f"Eq. 3 residual {eq3:.1e}")
     t0 = time.perf_counter()
     stage = PETSc.Log.Stage("softmodes: analysis")

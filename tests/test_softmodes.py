@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from parjam import cli, env, io, network, softmodes as sm
+from parjam.errors import ParjamError
 
 PETSc = env.petsc()
 DATA = os.path.join(os.path.dirname(__file__), "data")
@@ -297,6 +298,46 @@ def test_trial_energies_decrease_like_one_over_L_squared(case):
     slope_t = np.polyfit(np.log(Ls), np.log(Et), 1)[0]
     assert -2.3 < slope_g < -1.7, slope_g
     assert -2.5 < slope_t < -1.2, slope_t
+
+
+# --------------------------------------------------------------------------- basis methods
+
+@pytest.mark.parametrize("cut", ["one", "sub-boxes"])
+@pytest.mark.parametrize("name", ISO)
+def test_block_and_krylov_bases_agree(comm, packs, name, cut):
+    """Block inverse iteration and SLEPc Krylov-Schur span the same null space (principal
+    cosines 1), satisfy Eq. 3 to round-off, and find the same gap above it."""
+    cs = sm.prepare(packs[name], planes(packs[name], CUTS[cut]))
+    M = sm.relaxed_matrix(comm, cs, cs.kept)
+    scale = sm.stiffness_scale(cs.kept, cs.alpha, cs.eps)
+    n_soft = sm.null_count(comm, M, scale) - cs.d
+    a = sm.null_basis(comm, M, cs.d, n_soft, scale, "block")
+    b = sm.null_basis(comm, M, cs.d, n_soft, scale, "krylov")
+    S = sm.rigidity_matrix(comm, cs, cs.kept)
+    for nb in (a, b):
+        assert nb.V.shape[1] == n_soft
+        assert sm.eq3_residual(comm, S, nb.V) < 1e-12
+        assert sm.orthonormality_error(comm, nb.V) < 1e-12
+        assert np.abs(nb.rayleigh).max() < 1e-12 * scale
+    cos = np.linalg.svd(sm.gram(comm, a.V, b.V), compute_uv=False)
+    assert np.allclose(cos, 1.0, atol=1e-9)
+    assert a.gap == pytest.approx(b.gap, rel=1e-6) and a.gap > 1e-6 * scale
+    S.destroy()
+    M.destroy()
+
+
+def test_block_start_does_not_depend_on_the_rank_layout():
+    """The random start is drawn in fixed row blocks: any split of the rows gives the same
+    global matrix."""
+    whole = sm._random_block(0, 10000, 5, seed=3)
+    parts = np.concatenate([sm._random_block(a, z, 5, seed=3)
+                            for a, z in [(0, 2999), (2999, 3072), (3072, 7001), (7001, 10000)]])
+    assert np.array_equal(whole, parts)
+
+
+def test_unknown_basis_method_is_rejected(comm, packs):
+    with pytest.raises(ParjamError, match="unknown basis method"):
+        sm.null_basis(comm, None, 3, 1, 1.0, "lanczos")
 
 
 # --------------------------------------------------------------------------- ranks

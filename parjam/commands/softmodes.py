@@ -12,11 +12,12 @@ def add_parser(sub):
     p = sub.add_parser(
         "softmodes", help="soft modes after cutting the contacts that cross planes",
         description="Remove rattlers, cut every contact whose bond crosses the given planes, and "
-        "find the null space of the rigidity matrix of the rest (MUMPS inertia count, SLEPc "
-        "shift-and-invert basis orthogonal to the d translations). Reports the count against "
+        "find the null space of the rigidity matrix of the rest (MUMPS inertia count, basis "
+        "orthogonal to the d translations by block inverse iteration or SLEPc). Reports the count against "
         "d + q - 1, trivially localised modes, the extension of each mode, the overlap function "
         "f(x), the extended subspace q'/q and the trial-mode energies against Eq. (kkk). "
-        "SLEPc/PETSc options: -soft_eps_* -soft_st_* (basis), -soft_inertia_* (counts).")
+        "PETSc/SLEPc options: -soft_ksp_* -soft_pc_* and -soft_gap_eps_* (block basis), "
+        "-soft_eps_* -soft_st_* (krylov basis), -soft_inertia_* (counts).")
     p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
     p.add_argument("--cut", action="append", default=[], metavar="AXIS=FRACTION",
                    help="cut the plane AXIS = FRACTION * L (e.g. x=0.5; x=0 cuts the bonds that "
@@ -27,6 +28,9 @@ def add_parser(sub):
     p.add_argument("--e0", type=float, default=0.1,
                    help="extension threshold of the extended subspace and of Eq. (kkk) (0.1)")
     p.add_argument("--bins", type=int, default=10, help="slabs of the box for f(x) (10)")
+    p.add_argument("--basis", choices=["block", "krylov"], default="block",
+                   help="null-space method: block inverse iteration with one MUMPS factor "
+                   "(block, default) or SLEPc Krylov-Schur shift-and-invert (krylov)")
     p.add_argument("--vectors", action="store_true",
                    help="also store the basis (/softmodes/basis, modes x N x d)")
     p.add_argument("--allow-hyperstatic", action="store_true",
@@ -100,12 +104,13 @@ def run(args):
     cs = sm.prepare(pack, planes_from(args, pack.d), args.allow_hyperstatic)
     progress(f"N' = {cs.n} non-rattlers, Nc = {len(cs.contacts)} ({cs.excess:+d} from "
              f"isostatic), q = {cs.q} cut contacts on {len(cs.planes)} plane(s)")
-    res = sm.analyse(comm, cs, args.e0, args.bins, progress)
+    res = sm.analyse(comm, cs, args.e0, args.bins, progress, args.basis)
     res.solver["peak_rss_mb"] = peak_rss_mb(comm)
     prov = io.provenance(comm.getSize(), {
         "command": "softmodes", "input": os.path.abspath(args.packing),
         "input_sha256": io.sha256(args.packing) if comm.getRank() == 0 else "",
         "planes": [p.label for p in cs.planes], "e0": args.e0, "bins": args.bins,
+        "basis": args.basis,
         "allow_hyperstatic": bool(args.allow_hyperstatic)})
     sm.write(comm, args.out, res, args.vectors, prov)
     if comm.getRank() == 0:
