@@ -63,15 +63,21 @@ class Protocol:
     ftol: float = 1e-13
     energy_window: tuple = (1e-16, 2e-16)
     phi_start: float = None
+    phic_method: str = "bisect"  # or "extrapolate": no phi_c state is written (parjam.ensemble)
+
+    @property
+    def has_phi_c(self):
+        return self.phic_method == "bisect"
 
     @property
     def values(self):
         return self.dphi if self.dphi is not None else self.pressure
 
     def labels(self):
-        """State labels in the packing files' naming (parjam.packing): phi_c first."""
+        """State labels in the packing files' naming (parjam.packing): phi_c first (when the
+        bisection writes it)."""
         fmt = "dphi{:.1e}" if self.dphi is not None else "p{:.1e}"
-        return ["phi_c"] + [fmt.format(v) for v in sorted(self.values)]
+        return ["phi_c"] * self.has_phi_c + [fmt.format(v) for v in sorted(self.values)]
 
     def label_of(self, value):
         if value == "phi_c":
@@ -79,9 +85,12 @@ class Protocol:
         return ("dphi{:.1e}" if self.dphi is not None else "p{:.1e}").format(value)
 
     def key(self):
-        return {"dphi": self.dphi, "pressure": self.pressure, "ladder": self.ladder,
-                "ftol": self.ftol, "energy_window": list(self.energy_window),
-                "phi_start": self.phi_start}
+        key = {"dphi": self.dphi, "pressure": self.pressure, "ladder": self.ladder,
+               "ftol": self.ftol, "energy_window": list(self.energy_window),
+               "phi_start": self.phi_start}
+        if self.phic_method != "bisect":  # the bisection's stage keys stay as they were
+            key["phic_method"] = self.phic_method
+        return key
 
 
 @dataclass
@@ -291,13 +300,14 @@ def _protocol(raw, path):
     if len(window) != 2 or not window[0] < window[1]:
         t.fail("energy_window", f"must be [LOW, HIGH] with 0 < LOW < HIGH, got {window}")
     phi_start = t.float("phi_start", None, lo=0.05, hi=1.5)
+    phic_method = t.str("phic_method", "bisect", ("bisect", "extrapolate"))
     t.done()
     vals = dphi if dphi is not None else pressure
     if len({f"{v:.1e}" for v in vals}) != len(vals):
         t.fail("dphi" if dphi is not None else "pressure",
                "two values coincide to 2 significant digits (state labels would collide)")
     return Protocol(sorted(dphi) if dphi else None, sorted(pressure) if pressure else None,
-                    ladder, ftol, tuple(window), phi_start)
+                    ladder, ftol, tuple(window), phi_start, phic_method)
 
 
 def _solver(raw, path):
@@ -321,6 +331,9 @@ def _states(t, protocol, default):
     out = []
     for v in raw:
         if v == "phi_c":
+            if not protocol.has_phi_c:
+                t.fail("at", "there is no phi_c state with phic_method = \"extrapolate\" (phi_c "
+                             "is extrapolated, not reached): use the smallest protocol value")
             out.append("phi_c")
             continue
         if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -434,7 +447,7 @@ def _obs_softmodes(t, protocol, ladder, lowest, min_modes):
             "e0": t.float("e0", 0.1, lo=0.0, hi=1.0, lo_open=True),
             "bins": t.int("bins", 10, lo=2, hi=100_000),
             "allow_hyperstatic": t.bool("allow_hyperstatic"),
-            "at": _states(t, protocol, ["phi_c"])}
+            "at": _states(t, protocol, ["phi_c"] if protocol.has_phi_c else lowest)}
 
 
 def _obs_moduli(t, protocol, ladder, lowest, min_modes):
@@ -443,7 +456,8 @@ def _obs_moduli(t, protocol, ladder, lowest, min_modes):
 
 def _obs_fluctuations(t, protocol, ladder, lowest, min_modes):
     m = t.int("max_divisions", 8, lo=1, hi=1000)
-    return {"max_divisions": m, "at": _states(t, protocol, ["phi_c"] + lowest)}
+    return {"max_divisions": m,
+            "at": _states(t, protocol, ["phi_c"] * protocol.has_phi_c + lowest)}
 
 
 def _obs_pictures(t, protocol, ladder, lowest, min_modes):
@@ -473,7 +487,9 @@ class Stage:
 
     def solvers(self):
         if self.kind != "spectrum":
-            return {"pack": "FIRE + Newton (MUMPS), O'Hern bisection", "network": "numpy",
+            search = ("phi_c extrapolated from above"
+                      if self.params.get("phic_method") == "extrapolate" else "O'Hern bisection")
+            return {"pack": f"FIRE + Newton (MUMPS), {search}", "network": "numpy",
                     "moduli": "PETSc CG + MUMPS",
                     "softmodes": "MUMPS inertia + block inverse iteration",
                     "fluctuations": "numpy", "summary": "numpy"}.get(self.kind, "")
@@ -579,7 +595,8 @@ def plan(scene):
     obs = scene.observables
     for s in scene.systems:
         base = {"system": s.key(), "protocol": scene.protocol.key(), "seed": scene.seed}
-        pack = Stage("pack", s, {"labels": scene.protocol.labels()}, [],
+        pack = Stage("pack", s, {"labels": scene.protocol.labels(),
+                                 "phic_method": scene.protocol.phic_method}, [],
                      scene.protocol.labels())
         pack.key = stage_key("pack", base)
         net = Stage("network", s, {}, [pack.key], scene.protocol.labels())

@@ -54,6 +54,11 @@ def scene_text(observables, base=BASE):
     (BASE.replace("dphi = [1e-3, 1e-2]", "dphi = [0.0, 1e-2]") + "[observables]\n"
      "contacts = true\n", "dphi"),
     (BASE + "[observables]\n", "observables"),
+    (BASE.replace("seed = 3", "seed = 3").replace("[ensemble]", "phic_method = 'guess'\n"
+                                                   "[ensemble]")
+     + "[observables]\ncontacts = true\n", "phic_method"),
+    (BASE.replace("[ensemble]", "phic_method = 'extrapolate'\n[ensemble]")
+     + "[observables]\nfluctuations = { at = ['phi_c'] }\n", "at"),
     (BASE.replace("members = 2", "members = 2.5") + "[observables]\ncontacts = true\n",
      "members"),
 ])
@@ -80,6 +85,25 @@ def test_parser_defaults_and_lists():
     assert s.protocol.labels() == ["phi_c", "dphi1.0e-03", "dphi1.0e-02"]
     two_d = sc.loads(scene_text("contacts = true").replace("d = 3", "d = 2"))
     assert two_d.systems[0].dispersity == "bi" and two_d.systems[0].ratio == 1.4
+
+
+EXTRAP = BASE.replace("[ensemble]", "phic_method = 'extrapolate'\n[ensemble]")
+
+
+def test_extrapolated_phi_c_has_no_phi_c_state_and_its_own_keys():
+    """phic_method = "extrapolate" writes no phi_c state, so nothing defaults to it; the
+    bisection's stage keys do not change (old results stay valid)."""
+    obs = "softmodes = true\nfluctuations = true\n"
+    ex = sc.loads(scene_text(obs, EXTRAP))
+    bi = sc.loads(scene_text(obs))
+    assert ex.protocol.labels() == ["dphi1.0e-03", "dphi1.0e-02"]
+    assert ex.observables["softmodes"]["at"] == ["dphi1.0e-03"]
+    assert ex.observables["fluctuations"]["at"] == ["dphi1.0e-03"]
+    assert bi.observables["fluctuations"]["at"] == ["phi_c", "dphi1.0e-03"]
+    assert "phic_method" not in bi.protocol.key()
+    pack_ex, pack_bi = sc.plan(ex)[0], sc.plan(bi)[0]
+    assert pack_ex.key != pack_bi.key and "extrapolated" in pack_ex.solvers()
+    assert "bisection" in pack_bi.solvers()
 
 
 # --------------------------------------------------------------------------- the planner
@@ -388,3 +412,29 @@ def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world
     assert np.isnan(g["omega_star"][1]) and np.isfinite(g["omega_star"][0])
     assert set(np.unique(g["member_of_mode"])) == {0}
     assert np.all(np.isfinite(s["dphi1.0e-02"]["spectrum"]["relaxed"]["omega_star"]))
+
+
+def test_extrapolated_scene_matches_the_pack_command(shared_tmp, world):
+    """A scene with phic_method = "extrapolate" packs exactly what ``parjam pack --phic-method
+    extrapolate`` packs (same phi_c, phi and pressure per member)."""
+    from parjam import cli, io, network
+    from parjam.commands import run as runmod
+
+    out = os.path.join(shared_tmp, "extrap-scene")
+    code, runner = run_scene(scene_text("contacts = true\n", EXTRAP), out, world)
+    assert code == 0
+    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    assert "phi_c" not in summary
+    ref = os.path.join(shared_tmp, "extrap-pack")
+    assert cli.main(["pack", "--dim", "3", "--n", "64", "--dphi", "1e-3", "1e-2", "--members",
+                     "2", "--seed", "3", "--phic-method", "extrapolate", "--out", ref,
+                     "-q"]) == 0
+    for member in range(2):
+        for label in ("dphi1.0e-03", "dphi1.0e-02"):
+            pack = io.read_packing(os.path.join(ref, f"member{member:04d}_{label}.h5"))
+            got = summary[label]["network"]
+            assert got["phi_c"][member] == pytest.approx(pack.meta["phi_c"], rel=1e-12)
+            assert got["phi"][member] - got["phi_c"][member] == pytest.approx(
+                float(label[4:]), rel=1e-6)
+            assert got["pressure"][member] == pytest.approx(network.analyze(pack).pressure,
+                                                            rel=1e-8)

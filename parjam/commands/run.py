@@ -114,7 +114,7 @@ def pack_args(scene, system, out):
         ratio=system.ratio, phi=None, phi_start=p.phi_start or {2: 0.86, 3: 0.66}[system.d],
         seed=scene.seed, ftol=p.ftol, energy_window=tuple(p.energy_window), no_phic_file=False,
         pressure=p.pressure, dphi=p.dphi, ladder=p.ladder, out=out, members=scene.members,
-        quiet=False, phic_method="bisect")
+        quiet=False, phic_method=p.phic_method)
 
 
 def network_record(pack):
