@@ -5,18 +5,22 @@ the same run.  Run by hand, never in the test suite:
 
     source scripts/mpi-env
     .venv/bin/python scripts/bench_softmodes.py [--sizes 1024 4096 16384] [--ranks 1 2]
-        [--dense-max 4096] [--out docs/bench-softmodes.md]
+        [--dense-max 4096] [--krylov-timeout 600] [--conditions "quiet"]
+        [--out docs/bench-softmodes.md]
 
 Missing packings are made with ``parjam pack --dim 3 --n N --dphi 1e-8 --phic-method
 extrapolate --seed 1`` under bench-out/ (the bisection takes hours at N = 16384 here).  Each (N, ranks) run is a separate ``mpirun`` of the command line;
-its stage times and peak memory per rank come from the output file.  The dense baseline runs in
-its own process (one thread, like one rank) and also checks that both bases span the same space.
+its stage times and peak memory per rank come from the output file.  Both null-basis methods
+run: block inverse iteration (the default) on every rank count, SLEPc Krylov-Schur on 1 rank
+(stopped after --krylov-timeout seconds).  The dense baseline runs in its own process (one
+thread, like one rank) and also checks that both bases span the same space.
 """
 
 import argparse
 import json
 import os
 import shlex
+import signal
 import subprocess
 import sys
 import time
@@ -42,15 +46,24 @@ def ensure_packing(workdir, n, phic_method="extrapolate"):
     return path
 
 
-def run_parjam(path, n, ranks, workdir, vectors):
-    out = os.path.join(workdir, f"soft{n}_r{ranks}.h5")
+def run_parjam(path, n, ranks, workdir, vectors, basis="block", timeout=None):
+    """One ``mpirun parjam softmodes``; None if it was stopped after ``timeout`` seconds."""
+    out = os.path.join(workdir, f"soft{n}_r{ranks}_{basis}.h5")
     mpirun = shlex.split(os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe"))
     cmd = mpirun + ["-n", str(ranks), PARJAM, "softmodes", path, "--cut", "x=0.5", "--out", out,
-                    "-q", "--allow-hyperstatic"] + (["--vectors"] if vectors else [])
+                    "-q", "--allow-hyperstatic", "--basis", basis] + (["--vectors"] if vectors else [])
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, start_new_session=True)
+    try:
+        rc = proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGTERM)  # mpirun and its ranks
+        proc.wait()
+        return None
+    if rc != 0:
+        raise subprocess.CalledProcessError(rc, cmd)
     wall = time.perf_counter() - t0
-    return dict(read_result(out), wall=wall, ranks=ranks, file=out)
+    return dict(read_result(out), wall=wall, ranks=ranks, file=out, basis=basis)
 
 
 def read_result(out):
@@ -134,16 +147,39 @@ def dense_cells(r, dn):
     return f"{dn['seconds']:.1f}{what} | {dn['peak_mb']:.0f} | {ratio:.1f}x | {cos}"
 
 
-def markdown(rows, dense, host):
+def method_table(rows, krylov, timeout):
+    """Block inverse iteration against SLEPc Krylov-Schur, 1 rank, same packing."""
+    lines = ["", "## Null basis: block inverse iteration against SLEPc Krylov-Schur (1 rank)", "",
+             "Same packing, same count; the basis step only (`basis s`). Krylov-Schur: "
+             "shift-and-invert at -1e-8 k, mpd 256, restart 0.8, translations deflated.", "",
+             "| N | modes | block s | block passes | Krylov-Schur s | Krylov / block | gap (block) "
+             "k | gap (Krylov) k |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if r["ranks"] != 1 or r["n"] not in krylov:
+            continue
+        kr = krylov[r["n"]]
+        if kr is None:
+            lines.append(f"| {r['n']} | {r['count'] - 3} | {r['t_null']:.1f} | {r['iterations']} "
+                         f"| stopped after {timeout:.0f} s (wall) | > {timeout / r['t_null']:.0f}x "
+                         f"| {r['gap']:.4e} | - |")
+        else:
+            lines.append(f"| {r['n']} | {r['count'] - 3} | {r['t_null']:.1f} | {r['iterations']} "
+                         f"| {kr['t_null']:.1f} | {kr['t_null'] / r['t_null']:.1f}x "
+                         f"| {r['gap']:.4e} | {kr['gap']:.4e} |")
+    return lines
+
+
+def markdown(rows, dense, host, conditions, krylov, timeout):
     lines = [
         "# Benchmark: `parjam softmodes` (3D, one cut at x = L/2)",
         "",
         "Made by `scripts/bench_softmodes.py` (run by hand; see its docstring). Near-isostatic "
         "packings (`parjam pack --dim 3 --n N --dphi 1e-8 --phic-method extrapolate --seed 1`), "
         "rattlers removed, one plane cut at "
-        "x = L/2. parjam: MUMPS inertia count at two thresholds, SLEPc Krylov-Schur "
-        "shift-and-invert basis with the translations deflated, Eq. 3 residuals, extension, "
-        "f(x) and trial modes. Baseline: dense LAPACK SVD of the rigidity matrix S (numpy, "
+        "x = L/2. parjam: MUMPS inertia count at two thresholds, null basis by block inverse "
+        "iteration (one MUMPS factor of M + 1e-8 k I, n_soft + 8 right-hand sides, "
+        "Rayleigh-Ritz; the default) with the translations deflated, Eq. 3 residuals, "
+        "extension, f(x) and trial modes. Baseline: dense LAPACK SVD of the rigidity matrix S (numpy, "
         "one thread), the reference implementation's method, run in the same session: count "
         "and null basis (with the smallest cosine between the two bases' spans, 1 = same "
         "space) or, for the larger sizes, the singular values only (count only, a lower bound "
@@ -151,11 +187,10 @@ def markdown(rows, dense, host):
         "seconds on 1 rank. `peak MB` is the largest resident set of any one rank (parjam) or "
         "of the baseline process.",
         "",
-        f"Machine: {host}. The 2 cores were shared with other jobs while this ran, so wall "
-        "times are upper bounds and 2-rank runs suffer most from the sharing.",
+        f"Machine: {host}. Conditions: {conditions}",
         "",
         "| N | N' | Nc - Nc_iso | q | null space (d+q-1) | ranks | wall s | count s | basis s | analysis s "
-        "| SLEPc its | peak MB/rank | Eq. 3 residual | dense SVD s | dense peak MB "
+        "| passes | peak MB/rank | Eq. 3 residual | dense SVD s | dense peak MB "
         "| dense / parjam (1 rank, count + basis) | subspace min cos |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -166,6 +201,7 @@ def markdown(rows, dense, host):
             f"{r['ranks']} | {r['wall']:.1f} | {r['t_count']:.2f} | {r['t_null']:.1f} | "
             f"{r['t_analysis']:.2f} | {r['iterations']} | {r['rss']:.0f} | {r['eq3']:.1e} | "
             + dense_cells(r, dense.get(r["n"])) + " |")
+    lines += method_table(rows, krylov, timeout)
     lines += ["", "## Physics of the same runs (1 rank)", "",
               "| N | L-scaled f minimum c (all / without localised) | localised | "
               "q'/q at e0 = 0.05, 0.1, 0.2, 0.3, 0.4 | omega_t^2 | omega_t^2 N^(2/3) | max trial "
@@ -195,11 +231,15 @@ def main():
     p.add_argument("--dense-vectors-max", type=int, default=1024,
                    help="largest N for which the baseline also computes the null basis and "
                    "compares subspaces; above it the baseline only counts (singular values)")
+    p.add_argument("--krylov-timeout", type=float, default=600.0,
+                   help="stop the 1-rank SLEPc Krylov-Schur comparison after this many s (600)")
+    p.add_argument("--conditions", default="not stated",
+                   help="what else ran on the machine, for the page")
     p.add_argument("--workdir", default=os.path.join(ROOT, "bench-out"))
     p.add_argument("--out", default=os.path.join(ROOT, "docs", "bench-softmodes.md"))
     args = p.parse_args()
     os.makedirs(args.workdir, exist_ok=True)
-    rows, dense = [], {}
+    rows, dense, krylov = [], {}, {}
     for n in args.sizes:
         path = ensure_packing(args.workdir, n)
         for ranks in args.ranks:
@@ -208,15 +248,23 @@ def main():
             print(json.dumps({k: v for k, v in r.items() if k not in ("f", "fractions")}),
                   flush=True)
             rows.append(r)
+        if 1 in args.ranks:
+            krylov[n] = run_parjam(path, n, 1, args.workdir, False, "krylov",
+                                   args.krylov_timeout)
+            kr = krylov[n]
+            print(f"krylov N = {n}: " + (f"{kr['t_null']:.1f} s, count {kr['count']}" if kr
+                                         else f"stopped after {args.krylov_timeout:.0f} s"),
+                  flush=True)
+            assert kr is None or kr["count"] == rows[-len(args.ranks)]["count"]
         if n <= args.dense_max:
-            basis = (os.path.join(args.workdir, f"soft{n}_r1.h5")
+            basis = (os.path.join(args.workdir, f"soft{n}_r1_block.h5")
                      if n <= args.dense_vectors_max else None)
             dense[n] = run_dense(path, basis)
             print(f"dense N = {n}: {json.dumps(dense[n])}", flush=True)
             assert dense[n]["count"] == rows[-1]["count"], "dense and parjam counts differ"
     host = f"{os.cpu_count()} cores, {os.uname().sysname} {os.uname().release}"
     with open(args.out, "w") as fh:
-        fh.write(markdown(rows, dense, host))
+        fh.write(markdown(rows, dense, host, args.conditions, krylov, args.krylov_timeout))
     print(f"wrote {args.out}")
     return 0
 

@@ -1,8 +1,8 @@
 """The paper's figures and laws from the summary files of ``parjam run`` (docs/reproduction.md).
 
 A results directory holds one subdirectory per bundled scene (``SCENES``: ``paper-3d``,
-``paper-2d``, ``hertz-3d``, ``softmodes-3d``, each the ``--out`` of ``parjam run``), or the
-summary files of one ``parjam run`` directly.  Each figure of ``FIGURES`` uses the systems of its
+``paper-2d``, ``paper-3d-10x``, ``hertz-3d``, ``softmodes-3d``, each the ``--out`` of
+``parjam run``), or the summary files of one ``parjam run`` directly.  Each figure of ``FIGURES`` uses the systems of its
 group that hold the data it needs (its ``needs``), fits its laws (parjam.plot.fits) into a
 ``fits`` dict and is drawn to ``repro_<name>.png``.  ``parjam plot RESULTS --img DIR`` and
 ``scripts/reproduce.py`` call :func:`reproduce`.
@@ -21,7 +21,7 @@ from parjam.plot import atomic_png, pyplot
 from parjam.plot.fits import fit_eq33, fit_power, law, log_slope
 
 #: figure group -> the bundled scenes (subdirectories of a results directory) that feed it
-SCENES = {"paper": ("paper-3d", "paper-2d"), "hertz": ("hertz-3d",),
+SCENES = {"paper": ("paper-3d", "paper-2d", "paper-3d-10x"), "hertz": ("hertz-3d",),
           "softmodes": ("softmodes-3d",)}
 DPI = 80
 
@@ -121,7 +121,6 @@ def _has(s, labs, *paths, at_least=2):
 
 FIG1_STATES = ["dphi1.0e-01", "dphi1.0e-02", "dphi1.0e-03", "dphi1.0e-04", "dphi1.0e-08"]
 COMPARE_STATES = ["dphi1.0e-01", "dphi1.0e-02", "dphi1.0e-03"]
-FLUCT_STATES = ["phi_c", "dphi1.0e-04", "dphi1.0e-02"]
 
 
 def _panels(plt, systems):
@@ -303,9 +302,14 @@ def diag(plt, systems, fits):
     return fig
 
 
+def _fluct_states(s):
+    """The states with sub-box fluctuations: phi_c (when the bisection wrote it) and the ladder."""
+    return [lab for lab in ["phi_c"] + states(s)
+            if _get(s, lab, "fluctuations", "l") is not None]
+
+
 def _fluct_ok(s):
-    return any((_get(s, lab, "fluctuations", "l") is not None
-                and np.shape(s[lab]["fluctuations"]["l"])[-1] >= 2) for lab in FLUCT_STATES)
+    return any(np.shape(s[lab]["fluctuations"]["l"])[-1] >= 2 for lab in _fluct_states(s))
 
 
 def fluct(plt, systems, fits):
@@ -314,10 +318,8 @@ def fluct(plt, systems, fits):
     fig, axes = _panels(plt, systems)
     for ax, (name, s) in zip(axes, systems.items()):
         d = int(s["attrs"]["d"])
-        for k, lab in enumerate(FLUCT_STATES):
-            g = _get(s, lab, "fluctuations")
-            if g is None:
-                continue
+        for k, lab in enumerate(_fluct_states(s)):
+            g = s[lab]["fluctuations"]
             l = g["l"][0][1:]  # m >= 2: sub-boxes (m = 1 is the whole box, variance 0)
             std_c = np.sqrt(g["var_contacts"][:, 1:].mean(axis=0))
             std_x = np.sqrt(g["var_excess"][:, 1:].mean(axis=0))
