@@ -422,8 +422,12 @@ def _obs_omega_star(t, protocol, ladder, lowest, min_modes):
     window, k = _window(t), _k(t, min_modes)
     if window is not None and k is not None:
         t.fail("k", "give a window or k, not both")
+    plateau = t.str("plateau", "spectrum", ("spectrum", "kpm"))
+    if plateau == "kpm" and window is None and k is None:
+        t.fail("plateau", "\"kpm\" is for partial spectra (k or window): a whole spectrum has "
+                          "its own plateau")
     return {"matrices": t.strings("matrices", ["relaxed"], MATRICES), "window": window, "k": k,
-            "at": _states(t, protocol, ladder)}
+            "plateau": plateau, "at": _states(t, protocol, ladder)}
 
 
 def _obs_trans(t, protocol, ladder, lowest, min_modes):
@@ -511,6 +515,8 @@ def spectrum_needs(scene, system):
     def want(matrix, state, **kw):
         d = need.setdefault(matrix, {}).setdefault(
             state, {"all": False, "k": 0, "window": None, "per_mode": False, "vectors": False})
+        if kw.get("kpm_plateau"):
+            d["kpm_plateau"] = True  # only when asked: the other stage keys stay as they were
         d["all"] |= kw.get("all", False)
         d["k"] = max(d["k"], kw.get("k") or 0)
         d["per_mode"] |= kw.get("per_mode", False)
@@ -531,7 +537,7 @@ def spectrum_needs(scene, system):
         for m in o["matrices"]:
             for s in o["at"]:
                 want(m, s, all=o["window"] is None and o["k"] is None, window=o["window"],
-                     k=o["k"])
+                     k=o["k"], kpm_plateau=o["plateau"] == "kpm")
     if "lowest" in obs:
         o = obs["lowest"]
         for m in o["matrices"]:
@@ -645,6 +651,7 @@ def describe(scene, stages):
                         f"window {p['window']}" if p["window"] else f"lowest k={p['k']}")
                 extra = ", per-mode sums" if p["per_mode"] else ""
                 extra += ", eigenvectors stored" if p["vectors"] else ""
+                extra += ", D0 from KPM" if p.get("kpm_plateau") and not p["all"] else ""
                 lines.append(f"      {state:<12} {what}{extra}: {p['solver']}")
         else:
             lines.append(f"      states {', '.join(st.states)}; {st.solvers()}")

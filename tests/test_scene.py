@@ -47,6 +47,8 @@ def scene_text(observables, base=BASE):
     (scene_text("dos = { at = [0.5] }"), "at"),
     (scene_text("dos = { bins = 'x' }"), "bins"),
     (scene_text("softmodes = { cuts = ['q=0.5'] }"), "cuts"),
+    (scene_text("omega_star = { plateau = 'kpm' }"), "plateau"),
+    (scene_text("omega_star = { k = 10, plateau = 'fit' }"), "plateau"),
     (BASE.replace("dphi = [1e-3, 1e-2]", "dphi = [1e-3]\npressure = [1e-3]")
      + "[observables]\ncontacts = true\n", "dphi"),
     (BASE.replace("dphi = [1e-3, 1e-2]", "pressure = [1e-3]\nladder = 'decompress'")
@@ -360,6 +362,41 @@ small_dof = 0
             assert rec["eigenvector"].shape == (5, system.n, 3)
         else:
             assert "eigenvector" not in rec
+
+
+def test_kpm_plateau_gives_the_dense_omega_star_from_the_lowest_modes(shared_tmp, world):
+    """omega_star = { k = K, plateau = "kpm" }: D0 from KPM moments, omega* from the K lowest
+    modes; both close to the dense whole-spectrum values of the same packing, where the partial
+    spectrum's own plateau would be biased low."""
+    from parjam import observables, spectrum
+    from parjam.commands import run as runmod
+    from parjam.packing import make_jammed
+
+    text = BASE.replace("dphi = [1e-3, 1e-2]", "dphi = [1e-2]").replace("N = 64", "N = 256") \
+        + """[observables]
+omega_star = { matrices = ["relaxed"], k = 100, plateau = "kpm" }
+[solver]
+small_dof = 0
+"""
+    out = os.path.join(shared_tmp, "kpm-plateau")
+    code, runner = run_scene(text, out, world)
+    assert code == 0
+    st = next(x for x in runner.stages if x.kind == "spectrum")
+    assert st.params["dphi1.0e-02"]["solver"] == "sinvert"
+    for member in range(2):
+        rec = runmod.read_part(runner.part_path(st, member))["dphi1.0e-02"]
+        _, (pack,) = make_jammed(3, 256, [1e-2], seed=3, member=member)
+        system = spectrum.active_system(pack)
+        w = observables.frequency(
+            np.linalg.eigvalsh(spectrum.dense_matrix(system, "relaxed"))[system.d:])
+        d0, wstar, _ = observables.dos_summary(w[w > 0], system.n_modes)
+        assert rec["plateau_source"] == "kpm" and len(rec["frequency"]) == 100
+        # N' ~ 250: KPM's stochastic D0 is good to a few %, and omega* moves by one mode
+        # (~10 %) when D0/2 crosses N(omega)/omega at a different mode
+        assert rec["D0"] == pytest.approx(d0, rel=0.05)
+        assert rec["omega_star"] == pytest.approx(wstar, rel=0.12)
+        biased, _, _ = observables.dos_summary(w[:100][w[:100] > 0], system.n_modes)
+        assert abs(biased - d0) > abs(rec["D0"] - d0)  # the partial plateau is the worse guess
 
 
 def test_a_member_that_does_not_jam_is_left_out(shared_tmp, world, monkeypatch):
