@@ -178,20 +178,23 @@ def compare(plt, systems, fits):
 SANS_MIN_EXCESS = 10  # contacts above isostatic, member mean
 
 
+def _excess(s, lab):
+    x = _get(s, lab, "network", "excess")
+    return np.nanmean(np.asarray(x, dtype=float)) if x is not None else 0.0
+
+
 def _sans_states(s):
-    """States with omega* of the relaxed system and at least SANS_MIN_EXCESS excess contacts:
-    with fewer, omega* is set by the lowest modes of the finite box, not by dz.  At N = 1024
-    this keeps dphi >= 1e-4 in 2D and 3D; at N = 10240 also dphi = 1e-5 (117 contacts)."""
+    """States with omega* of the relaxed system at dphi >= 1e-4, or below where a state still
+    has SANS_MIN_EXCESS excess contacts: with fewer, omega* is set by the lowest modes of the
+    finite box, not by dz.  At N = 1024 this is dphi >= 1e-4 (2D and 3D); at N = 10240 it adds
+    dphi = 1e-5 (117 contacts)."""
     return [lab for lab in states(s)
             if _get(s, lab, "spectrum", "relaxed", "omega_star") is not None
-            and _get(s, lab, "network", "excess") is not None
-            and np.nanmean(np.asarray(s[lab]["network"]["excess"], dtype=float))
-            >= SANS_MIN_EXCESS]
+            and (value(lab) >= 1e-4 or _excess(s, lab) >= SANS_MIN_EXCESS)]
 
 
 def sans(plt, systems, fits):
-    """Fig. "sans": omega* of the relaxed system against dz (states with >= 10 excess
-    contacts)."""
+    """Fig. "sans": omega* of the relaxed system against dz (the states of _sans_states)."""
     fig, ax = plt.subplots(figsize=(4.6, 3.6))
     for k, (name, s) in enumerate(systems.items()):
         labs = _sans_states(s)
