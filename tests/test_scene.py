@@ -326,6 +326,40 @@ omega_star = { matrices = ["relaxed"] }
     assert 0.6 < slope_w < 1.5, slope_w
 
 
+def test_small_hertz_scene_exponents(shared_tmp, world):
+    """Hertzian contacts (alpha = 5/2) on a tiny ensemble at target pressures (3D, N = 128):
+    dz ~ p^(1/3), not the harmonic p^(1/2), and omega* ~ p^(1/2) (Section VI of the paper)."""
+    from parjam.commands import run as runmod
+    from parjam.moduli import power_law_fit
+
+    text = """
+[[system]]
+d = 3
+N = 128
+alpha = 2.5
+[protocol]
+pressure = [1e-4, 1e-3, 1e-2]
+[ensemble]
+members = 3
+seed = 12
+[observables]
+contacts = true
+omega_star = { matrices = ["relaxed"] }
+"""
+    out = os.path.join(shared_tmp, "hertz-laws")
+    code, runner = run_scene(text, out, world)
+    assert code == 0
+    s = runmod.read_summary(next(iter(runner.summaries.values())))
+    labels = ["p1.0e-04", "p1.0e-03", "p1.0e-02"]
+    p = np.array([s[lab]["network"]["pressure"] for lab in labels]).T  # members x states
+    dz = np.array([s[lab]["network"]["dz_iso"] for lab in labels]).T
+    ws = np.array([s[lab]["spectrum"]["relaxed"]["omega_star"] for lab in labels]).T
+    slope_dz, _ = power_law_fit(p.mean(axis=0), dz)
+    assert 0.2 < slope_dz < 0.45, slope_dz  # 1/3; harmonic would give 1/2
+    slope_w, _ = power_law_fit(p.mean(axis=0), ws)
+    assert 0.3 < slope_w < 0.75, slope_w  # 1/2
+
+
 def test_lowest_modes_and_window_use_slepc(shared_tmp, world):
     """k lowest modes by shift-and-invert (vectors stored) and a window by slicing, as the plan
     says when dense is not allowed, equal the dense eigenvalues of the same packing."""
