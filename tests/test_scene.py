@@ -293,33 +293,42 @@ def test_interrupted_run_resumes_at_the_next_member(shared_tmp, world):
     assert summary["dphi1.0e-02"]["network"]["dz"].shape == (4,)
 
 
-def test_small_paper_scene_exponents(shared_tmp, world):
-    """The paper's laws on a tiny ensemble (3D, N = 128): dz ~ p^(1/2) (Eq. 22) and
-    omega* ~ dz in the relaxed system (Fig. "sans"), within generous bounds."""
-    from parjam.commands import run as runmod
-    from parjam.moduli import power_law_fit
-
-    text = """
+LAWS_SCENE = """
 [[system]]
 d = 3
 N = 128
+{system}
 [protocol]
-dphi = [1e-4, 1e-3, 1e-2, 1e-1]
+{protocol}
 [ensemble]
 members = 3
-seed = 11
+seed = {seed}
 [observables]
 contacts = true
-omega_star = { matrices = ["relaxed"] }
+omega_star = {{ matrices = ["relaxed"] }}
 """
-    out = os.path.join(shared_tmp, "laws")
-    code, runner = run_scene(text, out, world)
+
+
+def law_tables(shared_tmp, world, name, labels, **fmt):
+    """Run a tiny 3D scene; (p, dz, omega*) of its ``labels`` as members x states arrays."""
+    from parjam.commands import run as runmod
+
+    code, runner = run_scene(LAWS_SCENE.format(**fmt), os.path.join(shared_tmp, name), world)
     assert code == 0
     s = runmod.read_summary(next(iter(runner.summaries.values())))
-    labels = ["dphi1.0e-03", "dphi1.0e-02", "dphi1.0e-01"]
-    p = np.array([s[lab]["network"]["pressure"] for lab in labels]).T  # members x states
-    dz = np.array([s[lab]["network"]["dz_iso"] for lab in labels]).T
-    ws = np.array([s[lab]["spectrum"]["relaxed"]["omega_star"] for lab in labels]).T
+    return tuple(np.array([s[lab][kind][q] if matrix is None else s[lab][kind][matrix][q]
+                           for lab in labels]).T
+                 for kind, matrix, q in [("network", None, "pressure"), ("network", None, "dz_iso"),
+                                         ("spectrum", "relaxed", "omega_star")])
+
+
+def test_small_paper_scene_exponents(shared_tmp, world):
+    """The paper's laws on a tiny ensemble (3D, N = 128): dz ~ p^(1/2) (Eq. 22) and
+    omega* ~ dz in the relaxed system (Fig. "sans"), within generous bounds."""
+    from parjam.moduli import power_law_fit
+
+    p, dz, ws = law_tables(shared_tmp, world, "laws", ["dphi1.0e-03", "dphi1.0e-02", "dphi1.0e-01"],
+                           system="", protocol="dphi = [1e-4, 1e-3, 1e-2, 1e-1]", seed=11)
     slope_dz, _ = power_law_fit(p.mean(axis=0), dz)
     assert 0.3 < slope_dz < 0.75, slope_dz
     slope_w, _ = power_law_fit(dz.mean(axis=0), ws)
@@ -329,31 +338,11 @@ omega_star = { matrices = ["relaxed"] }
 def test_small_hertz_scene_exponents(shared_tmp, world):
     """Hertzian contacts (alpha = 5/2) on a tiny ensemble at target pressures (3D, N = 128):
     dz ~ p^(1/3), not the harmonic p^(1/2), and omega* ~ p^(1/2) (Section VI of the paper)."""
-    from parjam.commands import run as runmod
     from parjam.moduli import power_law_fit
 
-    text = """
-[[system]]
-d = 3
-N = 128
-alpha = 2.5
-[protocol]
-pressure = [1e-4, 1e-3, 1e-2]
-[ensemble]
-members = 3
-seed = 12
-[observables]
-contacts = true
-omega_star = { matrices = ["relaxed"] }
-"""
-    out = os.path.join(shared_tmp, "hertz-laws")
-    code, runner = run_scene(text, out, world)
-    assert code == 0
-    s = runmod.read_summary(next(iter(runner.summaries.values())))
-    labels = ["p1.0e-04", "p1.0e-03", "p1.0e-02"]
-    p = np.array([s[lab]["network"]["pressure"] for lab in labels]).T  # members x states
-    dz = np.array([s[lab]["network"]["dz_iso"] for lab in labels]).T
-    ws = np.array([s[lab]["spectrum"]["relaxed"]["omega_star"] for lab in labels]).T
+    p, dz, ws = law_tables(shared_tmp, world, "hertz-laws", ["p1.0e-04", "p1.0e-03", "p1.0e-02"],
+                           system="alpha = 2.5", protocol="pressure = [1e-4, 1e-3, 1e-2]",
+                           seed=12)
     slope_dz, _ = power_law_fit(p.mean(axis=0), dz)
     assert 0.2 < slope_dz < 0.45, slope_dz  # 1/3; harmonic would give 1/2
     slope_w, _ = power_law_fit(p.mean(axis=0), ws)

@@ -208,9 +208,9 @@ def kpm_plateau_summary(comm, system, kind, omega):
     """(D0, omega*, plateau window) of a partial spectrum (the lowest modes or a window): the
     plateau D0 from KPM moments of the whole matrix (parjam.kpm, the 30-60 % frequency
     quantiles), omega* from the computed modes with it (parjam.observables.omega_star: N(omega)
-    is exact up to the highest computed mode; NaN if the modes do not reach 2 omega*).  The partial spectrum's own upper half would
-    bias D0, and omega* with it, low: by 5-20 % at dphi = 1e-5 .. 1e-3 (3D, N = 1024,
-    docs/reproduction.md)."""
+    is exact up to the highest computed mode; NaN if the modes do not reach 2 omega*).  The
+    partial spectrum's own upper half would bias D0, and omega* with it, low: by 5-20 % at
+    dphi = 1e-5 .. 1e-3 (3D, N = 1024, docs/reproduction.md)."""
     from parjam import kpm, observables
 
     COUNTERS["kpm"] += 1

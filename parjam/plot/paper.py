@@ -2,10 +2,10 @@
 
 A results directory holds one subdirectory per bundled scene (``SCENES``: ``paper-3d``,
 ``paper-2d``, ``paper-3d-10x``, ``hertz-3d``, ``softmodes-3d``, each the ``--out`` of
-``parjam run``), or the summary files of one ``parjam run`` directly.  Each figure of ``FIGURES`` uses the systems of its
-group that hold the data it needs (its ``needs``), fits its laws (parjam.plot.fits) into a
-``fits`` dict and is drawn to ``repro_<name>.png``.  ``parjam plot RESULTS --img DIR`` and
-``scripts/reproduce.py`` call :func:`reproduce`.
+``parjam run``), or the summary files of one ``parjam run`` directly.  Each figure of
+``FIGURES`` uses the systems of its group that hold the data it needs (its ``needs``), fits
+its laws (parjam.plot.fits) into a ``fits`` dict and is drawn to ``repro_<name>.png``.
+``parjam plot RESULTS --img DIR`` and ``scripts/reproduce.py`` call :func:`reproduce`.
 """
 
 import glob
