@@ -249,6 +249,15 @@ def rigidity_matrix(comm, cs, contacts):
     return S
 
 
+def translation_columns(M, d):
+    """The d normalised translations as this rank's rows of an array (one column each)."""
+    vecs = translations(M, d)
+    T = np.stack([v.getArray().copy() for v in vecs], axis=1)
+    for v in vecs:
+        v.destroy()
+    return T
+
+
 def translations(M, d):
     """The d unit translations as Vecs in the layout of M (normalised)."""
     out = []
@@ -434,7 +443,7 @@ def null_basis_block(comm, M, d, n_soft, scale, prefix="soft_", oversample=8, ta
     lo, hi = M.getOwnershipRange()
     k = min(n_soft + oversample, M.getSize()[0] - d)
     ksp = _factorised(comm, M, tau * scale, prefix)
-    T = np.stack([t.getArray().copy() for t in translations(M, d)], axis=1)
+    T = translation_columns(M, d)
     try:
         X = _random_block(lo, hi, k, seed)
         for rnd in range(1, max_rounds + 1):
@@ -480,10 +489,7 @@ def _factorised(comm, M, shift, prefix):
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
     ksp = PETSc.KSP().create(comm=comm)
     ksp.setOperators(A)
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("cholesky")
-    pc.setFactorSolverType("mumps")
+    spectrum.direct_cholesky(ksp)
     ksp.setOptionsPrefix(prefix)
     ksp.setFromOptions()
     try:
@@ -588,6 +594,7 @@ def gap_above(comm, ksp, U, shift, prefix="soft_gap_", tol=1e-8):
         return float(1.0 / eps.getEigenvalue(0).real - shift)
     finally:
         eps.destroy()
+        op.getPythonContext().work.destroy()
         op.destroy()
 
 

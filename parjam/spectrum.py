@@ -381,15 +381,19 @@ class _OptionDefaults:
             opts.delValue(name)
 
 
-def configure_sinvert(eps):
-    """Shift-and-invert with a direct MUMPS Cholesky (LDL^T) factorisation, no Krylov solve."""
-    st = eps.getST()
-    st.setType("sinvert")
-    ksp = st.getKSP()
+def direct_cholesky(ksp):
+    """Make ``ksp`` a direct MUMPS Cholesky (LDL^T) solve: preonly, no Krylov iterations."""
     ksp.setType("preonly")
     pc = ksp.getPC()
     pc.setType("cholesky")
     pc.setFactorSolverType("mumps")
+
+
+def configure_sinvert(eps):
+    """Shift-and-invert with a direct MUMPS Cholesky (LDL^T) factorisation, no Krylov solve."""
+    st = eps.getST()
+    st.setType("sinvert")
+    direct_cholesky(st.getKSP())
 
 
 def sinvert_eps(A, k, target, abstol, deflation):
