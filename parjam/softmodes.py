@@ -404,7 +404,10 @@ def _configure_eps(eps, M, d, nev, scale, prefix, tol):
     eps.setConvergenceTest(SLEPc.EPS.Conv.ABS)
     eps.setTolerances(tol * scale, 1000)
     spectrum.configure_sinvert(eps)
-    eps.setDeflationSpace(translations(M, d))
+    vecs = translations(M, d)
+    eps.setDeflationSpace(vecs)  # SLEPc keeps its own copy
+    for v in vecs:
+        v.destroy()
     eps.setOptionsPrefix(prefix)
     eps.setFromOptions()
 
