@@ -20,13 +20,13 @@ def settings_from(args):
     return JamSettings(ftol=args.ftol, e_low=lo, e_high=hi)
 
 
-def member_states(args, member, comm, progress):
+def member_states(args, member, comm, progress, checkpoint=None):
     """Every requested state of one member, in the order they are computed."""
     rng = member_rng(args.seed, member)
     start_phi = args.phi if args.phi is not None else args.phi_start
     pack = random_packing(args.dim, args.n, start_phi, args.alpha, args.dispersity, args.ratio,
                           rng)
-    jammer = Jammer(comm, pack, settings_from(args), progress)
+    jammer = Jammer(comm, pack, settings_from(args), progress, checkpoint)
     try:
         if args.phi is not None:
             states = [jammer.at_phi(args.phi, f"phi{args.phi:.4f}")]
@@ -102,13 +102,32 @@ def file_name(out, member, state):
     return os.path.join(out, f"member{member:04d}_{state.label}.h5")
 
 
+def member_checkpoint(args, member, comm, progress, run_params):
+    """The member's checkpoint (parjam.checkpoint) in DIR/.checkpoint, or None when
+    --checkpoint-every is 0; with --no-resume an old one is discarded."""
+    from parjam import checkpoint
+
+    every = getattr(args, "checkpoint_every", 0.0)
+    if run_params is None or every <= 0:
+        return None
+    path = checkpoint.path_for(args.out, member)
+    if not args.resume and comm.getRank() == 0 and os.path.exists(path):
+        os.remove(path)
+    ck = checkpoint.Checkpoint(path, comm, every, {"member": member, **run_params}, progress)
+    if ck.loaded:
+        progress(f"resuming from {path}: {len(ck.done)} minimisations finished"
+                 + (", one in progress" if ck.pending is not None else ""))
+    return ck
+
+
 def pack_member(args, member, comm, progress, run_params=None):
     """Compute, write (group rank 0) and summarise the states of one ensemble member; then its
     manifest record (parjam.manifest), so that a restarted run skips it."""
     from parjam import faults, manifest
 
     t0 = time.time()
-    states, protocol, totals = member_states(args, member, comm, progress)
+    ck = member_checkpoint(args, member, comm, progress, run_params)
+    states, protocol, totals = member_states(args, member, comm, progress, ck)
     rows = []
     paths = []
     for st in states:
@@ -134,6 +153,8 @@ def pack_member(args, member, comm, progress, run_params=None):
                          "phi_c": st.info.get("phi_c", np.nan)})
     if comm.getRank() == 0 and run_params is not None:
         manifest.write_member_record(args.out, member, paths, run_params)
+    if ck is not None:
+        ck.remove()
     progress(f"done in {time.time() - t0:.1f} s ({totals['fire_steps']} FIRE steps, "
              f"{totals['newton_steps']} Newton steps)")
     faults.point("pack.member")  # PARJAM_FAULT testing hook (parjam/faults.py)

@@ -2,8 +2,9 @@
 
 ``PARJAM_FAULT=POINT@RANK[:KIND]`` makes world rank RANK fail when it reaches the named POINT:
 
-- POINT: ``command`` (in ``parjam.cli.main``, just before any command runs) or ``pack.member``
-  (in ``parjam pack``, after a member's files and manifest record are written);
+- POINT: ``command`` (in ``parjam.cli.main``, just before any command runs), ``pack.member``
+  (in ``parjam pack``, after a member's files and manifest record are written) or
+  ``pack.checkpoint`` (after a member's checkpoint is written, parjam.checkpoint);
 - KIND: ``error`` (default: a non-collective ParjamError, the path of a problem only one rank
   sees), ``crash`` (a RuntimeError, the path of a bug) or ``kill`` (the process SIGKILLs itself,
   as the out-of-memory killer would) or ``collective`` (a ParjamError marked collective although
@@ -17,7 +18,7 @@ import signal
 
 from parjam.errors import ParjamError
 
-POINTS = ("command", "pack.member")
+POINTS = ("command", "pack.member", "pack.checkpoint")
 KINDS = ("error", "crash", "kill", "collective")
 
 

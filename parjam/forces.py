@@ -82,6 +82,13 @@ class ForceField:
         self.ref_pos = pos.copy()
         self.n_rebuilds += 1
 
+    def renew_neighbours(self):
+        """Drop the neighbour list: the next evaluation rebuilds it at the current positions.
+        Newton calls this, so that its matrix pattern (hence the MUMPS ordering and round-off)
+        depends on the positions only, not on when the list was last built; a run resumed from a
+        checkpoint (parjam.checkpoint) then reaches the same minimum bitwise."""
+        self.pairs = None
+
     def contacts(self, pos):
         """Pairs touching owned particles that overlap: (i, j, r_ij, r, sigma)."""
         self._update_pairs(pos)

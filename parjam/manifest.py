@@ -172,10 +172,17 @@ def write_manifest(out, params, done):
 _TMP = re.compile(r"^\..+\.tmp(\d+)$")
 
 
+def temporary_dirs(out):
+    """Where parjam pack writes through temporary files: DIR, its records and checkpoints."""
+    from parjam.checkpoint import DIRECTORY
+
+    return (out, os.path.join(out, RECORDS), os.path.join(out, DIRECTORY))
+
+
 def remove_stale_temporaries(out):
     """Temporary files (.NAME.tmpPID) left by a killed process that no longer runs."""
     removed = []
-    for directory in (out, os.path.join(out, RECORDS)):
+    for directory in temporary_dirs(out):
         if not os.path.isdir(directory):
             continue
         for name in os.listdir(directory):

@@ -40,18 +40,42 @@ class MinResult:
         return self.status == "converged"
 
 
-def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None):
-    """FIRE on ff.x until max|F| < ftol, or the energy falls below e_stop (-> "unjammed")."""
+@dataclass
+class FireState:
+    """FIRE's dynamical state besides the positions: enough to continue a run exactly."""
+
+    v: np.ndarray  # velocities of all particles, (n, d)
+    dt: float
+    a: float
+    n_pos: int
+    step: int
+
+
+SNAPSHOT_EVERY = 100  # FIRE steps between offers of a snapshot (see ``fire``)
+
+
+def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snapshot=None):
+    """FIRE on ff.x until max|F| < ftol, or the energy falls below e_stop (-> "unjammed").
+
+    ``start`` (a FireState) continues an interrupted run from its velocities, time step and
+    counters.  Every SNAPSHOT_EVERY steps ``snapshot(make_state)`` is called, if given, on all
+    ranks; ``make_state()`` (collective) returns the current FireState (parjam.checkpoint)."""
     p = params or FireParams()
     f = ff.vec()
     v = ff.vec()
     v.set(0.0)
     energy = ff.evaluate(f)
     fmax = ff.max_norm(f)
-    dt, a, n_pos = p.dt, p.a0, 0
+    dt, a, n_pos, step = p.dt, p.a0, 0, 0
+    if start is not None:
+        v.array[:] = start.v[ff.lo:ff.hi].ravel()
+        dt, a, n_pos, step = start.dt, start.a, start.n_pos, start.step
     status = "not converged"
-    step = 0
-    for step in range(1, p.max_steps + 1):
+
+    def make_state():
+        return FireState(np.array(ff.gather(v)), dt, a, n_pos, step)
+
+    for step in range(step + 1, p.max_steps + 1):
         if energy < e_stop:
             status = "unjammed"
             break
@@ -80,6 +104,8 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None):
         fmax = ff.max_norm(f)
         if progress is not None and step % 100 == 0:
             progress(f"FIRE step {step}: E/N = {energy / ff.n:.3e}, max|F| = {fmax:.3e}")
+        if snapshot is not None and step % SNAPSHOT_EVERY == 0:
+            snapshot(make_state)
     ff.wrap()
     for vec in (f, v):
         vec.destroy()
@@ -162,6 +188,7 @@ def _newton_shift(fmax):
 
 def newton(ff, ftol, max_steps=60, progress=None):
     """Damped Newton iterations from ff.x until max|F| <= ftol."""
+    ff.renew_neighbours()
     f = ff.vec()
     f_trial = ff.vec()
     dx = ff.vec()
@@ -230,34 +257,67 @@ def newton(ff, ftol, max_steps=60, progress=None):
     return MinResult(status, energy, fmax, newton_steps=step)
 
 
+@dataclass
+class MinimiseState:
+    """Where an interrupted ``minimise`` stands: in the FIRE run of round ``round`` (0: the
+    first FIRE; k >= 1: the FIRE after the k-th Newton attempt), with that run's tolerance,
+    the steps of the rounds before it, and FIRE's own state."""
+
+    round: int
+    tol: float
+    fire_rel: float
+    fire_steps: int
+    newton_steps: int
+    fire: FireState
+
+
 def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_params=None,
-             attempts=8):
+             attempts=8, snapshot=None, resume=None):
     """FIRE until max|F| < fire_rel * (mean contact force), then Newton to ftol.
 
     Returns "unjammed" as soon as the energy drops below ``e_stop`` (useful in the phi_c
     bisection: the energy only decreases during minimisation).  Newton starts only where the
     Hessian is positive definite (the basin of a minimum): in a saddle region, or where Newton
     stalls (a contact network still rearranging, near jamming), FIRE goes on to a tolerance ten
-    times tighter and Newton is tried again.
+    times tighter and Newton is tried again (``attempts`` rounds).
+
+    ``snapshot(make_state)``, if given, is offered every few FIRE steps; ``make_state()``
+    (collective) returns a MinimiseState, from which ``resume`` continues an interrupted call
+    with the same FIRE trajectory (parjam.checkpoint).
     """
     params = fire_params or FireParams()
-    res = fire(ff, max(ftol, fire_rel * _force_scale(ff)), e_stop, params, progress)
-    total = MinResult(res.status, res.energy, res.fmax, res.fire_steps, 0)
-    if res.status == "unjammed" or res.fmax <= ftol:
-        return total
-    for _ in range(attempts):
-        nres = newton(ff, ftol, progress=progress)
-        total.newton_steps += nres.newton_steps
-        total.energy, total.fmax, total.status = nres.energy, nres.fmax, nres.status
-        if nres.ok or nres.energy < e_stop:
-            total.status = "unjammed" if nres.energy < e_stop else "converged"
-            return total
-        fire_rel *= 0.1
-        more = fire(ff, max(0.1 * ftol, fire_rel * _force_scale(ff)), e_stop, params, progress)
-        total.fire_steps += more.fire_steps
-        total.energy, total.fmax, total.status = more.energy, more.fmax, more.status
-        if more.status == "unjammed" or more.fmax <= ftol:
-            total.status = "unjammed" if more.status == "unjammed" else "converged"
+    total = MinResult("not converged", np.nan, np.nan)
+    first, start = 0, None
+    if resume is not None:
+        first, fire_rel, start = resume.round, resume.fire_rel, resume.fire
+        total.fire_steps, total.newton_steps = resume.fire_steps, resume.newton_steps
+    for rnd in range(first, attempts + 1):
+        if start is not None:
+            tol = resume.tol
+        elif rnd == 0:
+            tol = max(ftol, fire_rel * _force_scale(ff))
+        else:
+            nres = newton(ff, ftol, progress=progress)
+            total.newton_steps += nres.newton_steps
+            total.energy, total.fmax, total.status = nres.energy, nres.fmax, nres.status
+            if nres.ok or nres.energy < e_stop:
+                total.status = "unjammed" if nres.energy < e_stop else "converged"
+                return total
+            fire_rel *= 0.1
+            tol = max(0.1 * ftol, fire_rel * _force_scale(ff))
+        hook = None
+        if snapshot is not None:
+            before = (rnd, tol, fire_rel, total.fire_steps, total.newton_steps)
+
+            def hook(make_fire_state, before=before):
+                snapshot(lambda: MinimiseState(*before, make_fire_state()))
+
+        res = fire(ff, tol, e_stop, params, progress, start=start, snapshot=hook)
+        start = None
+        total.fire_steps += res.fire_steps
+        total.energy, total.fmax, total.status = res.energy, res.fmax, res.status
+        if res.status == "unjammed" or res.fmax <= ftol:
+            total.status = "unjammed" if res.status == "unjammed" else "converged"
             return total
     total.status = "not converged"
     return total

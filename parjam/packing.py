@@ -106,10 +106,12 @@ class State:
 class Jammer:
     """Minimises one configuration at chosen volume fractions on communicator ``comm``."""
 
-    def __init__(self, comm, pack, settings=None, progress=None):
+    def __init__(self, comm, pack, settings=None, progress=None, checkpoint=None):
         self.comm = comm
         self.settings = settings or JamSettings()
         self.progress = progress
+        self.checkpoint = checkpoint  # parjam.checkpoint.Checkpoint, or None
+        self.calls = 0  # minimisations so far: the key of their checkpoint records
         self.ff = ForceField(comm, pack.diam, pack.L, pack.d, pack.alpha, pack.eps)
         self.pack = pack.copy()
         self.ff.set_positions(self.pack.pos)
@@ -124,19 +126,59 @@ class Jammer:
             self.progress(msg)
 
     def relax(self, phi=None, e_stop=-np.inf):
-        """Rescale affinely to phi (if given) and minimise; returns the MinResult."""
+        """Rescale affinely to phi (if given) and minimise; returns the MinResult.  With a
+        checkpoint, a minimisation finished in an earlier run is replayed from its record and an
+        interrupted one continues from its last snapshot."""
+        call, ck = self.calls, self.checkpoint
+        self.calls += 1
+        record = ck.finished(call) if ck is not None else None
+        if record is not None:
+            return self._replay(record)
         if phi is not None:
             self.pack = self.pack.rescaled(phi)
-            self.ff.set_box(self.pack.L)
-            self.ff.set_positions(self.pack.pos)
+            self._set_state(self.pack.pos, self.pack.L)
+        calls_before = self.ff.n_force_calls
+        resume = self._resume(call) if ck is not None else None
+        hook = ck.snapshot(call, self.ff, self.pack.L, calls_before) if ck is not None else None
         try:
             res = minimize.minimise(self.ff, self.settings.ftol, e_stop,
-                                   fire_rel=self.settings.fire_rel, progress=self._inner)
+                                   fire_rel=self.settings.fire_rel, progress=self._inner,
+                                   snapshot=hook, resume=resume)
         except ValueError as exc:  # e.g. a box too small for the neighbour search
             raise ParjamError(f"at phi = {self.pack.phi:.10f}: {exc}", collective=False) from None
         self.total_fire += res.fire_steps
         self.total_newton += res.newton_steps
         self.pack.pos = np.array(self.ff.gather())
+        if ck is not None:
+            ck.finish(call, self.pack, res, self.ff.n_force_calls - calls_before)
+        return res
+
+    def _resume(self, call):
+        """The MinimiseState of minimisation ``call`` if a checkpoint caught it in progress
+        (its positions are set), else None."""
+        found = self.checkpoint.in_progress(call)
+        if found is None:
+            return None
+        pos, earlier_calls, state = found
+        self.ff.set_positions(pos)
+        self.ff.n_force_calls += earlier_calls  # those of the interrupted run
+        self._log(f"resuming minimisation {call + 1} from its checkpoint (FIRE step "
+                  f"{state.fire.step} of round {state.round})")
+        return state
+
+    def _set_state(self, pos, L):
+        """Box and positions of the force field (a new box drops the neighbour list)."""
+        self.ff.set_box(L)
+        self.ff.set_positions(pos)
+
+    def _replay(self, record):
+        """A minimisation of an earlier run, from its checkpoint record."""
+        self.pack.pos, self.pack.L = record["pos"].copy(), record["L"]
+        self._set_state(self.pack.pos, self.pack.L)
+        res = record["result"]
+        self.total_fire += res.fire_steps
+        self.total_newton += res.newton_steps
+        self.ff.n_force_calls += record["force_calls"]
         return res
 
     def pressure(self):

@@ -54,6 +54,10 @@ def add_parser(sub):
                    help="recompute every member; by default the members that DIR/manifest.json "
                    "lists as finished (files present, sha256 intact) are skipped, and a DIR "
                    "holding results of other parameters is refused")
+    p.add_argument("--checkpoint-every", type=float, default=300.0, metavar="SECONDS",
+                   help="write DIR/.checkpoint/memberM.h5 at most this often (default 300; 0: "
+                   "never): a killed or requeued run then resumes inside the member, not from "
+                   "its random start")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(run=run)
 
@@ -78,6 +82,8 @@ def validate(args):
         raise ParjamError(f"--seed must be a non-negative integer below 2^63, got {args.seed}")
     if not (0 < args.ftol < 1e-3):
         raise ParjamError(f"--ftol must lie in (0, 1e-3), got {args.ftol}")
+    if not (np.isfinite(args.checkpoint_every) and args.checkpoint_every >= 0):
+        raise ParjamError(f"--checkpoint-every must be >= 0 seconds, got {args.checkpoint_every}")
     lo, hi = args.energy_window
     if not (0 < lo < hi):
         raise ParjamError(f"--energy-window needs 0 < LOW < HIGH, got {lo} {hi}")
@@ -149,7 +155,7 @@ def _terminate_handler(out):
 
         from parjam import manifest
 
-        for directory in (out, os.path.join(out, manifest.RECORDS)):
+        for directory in manifest.temporary_dirs(out):
             for path in glob.glob(os.path.join(directory, f".*.tmp{os.getpid()}")):
                 with contextlib.suppress(OSError):
                     os.remove(path)
@@ -213,6 +219,9 @@ def _run(args):
     stage.pop()
     all_rows = mpi.gather(rows, root=0)
     if world.getRank() == 0:
+        from parjam import checkpoint
+
+        checkpoint.remove_empty_directory(args.out)
         finished, _ = manifest.finished_members(args.out, params)
         manifest.write_manifest(args.out, params, finished)
         for m, files in sorted(done.items()):

@@ -1,0 +1,183 @@
+"""Checkpoints inside one member's packing protocol, so that a killed or requeued ``parjam pack``
+resumes where it was instead of from the random start (a 3D N = 10^5 member near jamming needs
+hours of FIRE on a few cores: longer than many batch jobs may run).
+
+The protocol of a member (phi_c search, ladder, target pressures) is a sequence of
+minimisations (``Jammer.relax``) whose every decision depends only on their results.  A
+checkpoint holds, for each finished minimisation, its result and the configuration it ended in,
+and for the one in progress, the positions and FIRE's state (velocities, time step, mixing,
+counters; ``minimize.MinimiseState``).  On resume the finished minimisations are replayed from the
+record, without computing, and the one in progress continues its FIRE run.  The forces do not
+depend on when the neighbour list was built (overlapping pairs are summed in (i, j) order), so
+that FIRE trajectory continues bitwise; a later Newton phase can differ at round-off, since its
+matrix pattern is the neighbour list of the moment.
+
+The file (``DIR/.checkpoint/memberMMMM.h5``) is rewritten atomically by rank 0 of the member's
+group at most every ``every`` seconds (and not at all with ``every <= 0``), and removed when the
+member's results are written.  It records the run's parameters and is ignored (with a note) if
+they differ.
+"""
+
+import json
+import os
+import time
+
+import numpy as np
+
+from parjam import io
+from parjam.minimize import FireState, MinimiseState, MinResult
+
+DIRECTORY = ".checkpoint"
+FORMAT = 1
+
+
+def path_for(out, member):
+    return os.path.join(out, DIRECTORY, f"member{member:04d}.h5")
+
+
+class Checkpoint:
+    """Record of one member's minimisations on communicator ``comm`` (its group)."""
+
+    def __init__(self, path, comm, every, params, progress=None):
+        self.path = path
+        self.mpi = comm.tompi4py()
+        self.every = float(every)
+        self.params = json.dumps(params, sort_keys=True)
+        self.done = []  # finished minimisations: dicts with pos, L, result, force_calls
+        self.pending = None  # the one in progress: dict with call, pos, L, state
+        self._written = time.monotonic()
+        self.loaded = self._load(progress)
+
+    # --- reading -------------------------------------------------------------------------------
+    def _load(self, progress):
+        """Read the file on rank 0 and share it; False if there is none (or it is foreign)."""
+        data, note = None, None
+        if self.mpi.Get_rank() == 0 and os.path.exists(self.path):
+            try:
+                data = _read(self.path)
+            except (OSError, KeyError, ValueError) as exc:
+                note = f"checkpoint {self.path} unreadable ({exc}): starting afresh"
+            else:
+                if data["params"] != self.params:
+                    data, note = None, f"checkpoint {self.path} is of other parameters: ignored"
+        data, note = self.mpi.bcast((data, note), root=0)
+        if note and progress is not None:
+            progress(note)
+        if data is None:
+            return False
+        self.done, self.pending = data["done"], data["pending"]
+        return True
+
+    def finished(self, call):
+        """The record of minimisation number ``call`` if it finished before, else None."""
+        return self.done[call] if call < len(self.done) else None
+
+    def in_progress(self, call):
+        """(positions, force evaluations so far, MinimiseState) of minimisation ``call`` if it
+        was interrupted."""
+        p = self.pending
+        if p is not None and p["call"] == call and len(self.done) == call:
+            return p["pos"], p["force_calls"], p["state"]
+        return None
+
+    # --- writing -------------------------------------------------------------------------------
+    def _due(self):
+        """The same decision on every rank of the group (rank 0's clock)."""
+        if self.every <= 0:
+            return False
+        due = time.monotonic() - self._written >= self.every if self.mpi.Get_rank() == 0 else None
+        return self.mpi.bcast(due, root=0)
+
+    def finish(self, call, pack, result, force_calls):
+        """Minimisation ``call`` ended in ``pack`` with ``result``; written when due."""
+        self.done.append({"pos": pack.pos.copy(), "L": float(pack.L), "result": result,
+                          "force_calls": int(force_calls)})
+        self.pending = None
+        if self._due():
+            self._write()
+
+    def snapshot(self, call, ff, L, calls_before):
+        """A hook for ``minimize.minimise``: record minimisation ``call`` in progress, when due
+        (collective: every rank of the group calls it); ``calls_before`` is ff's force-evaluation
+        count when the minimisation began."""
+
+        def hook(make_state):
+            if not self._due():
+                return
+            pos = np.array(ff.gather())  # before make_state(), which reuses the gather buffer
+            self.pending = {"call": call, "pos": pos, "L": float(L), "state": make_state(),
+                            "force_calls": ff.n_force_calls - calls_before}
+            self._write()
+
+        return hook
+
+    def _write(self):
+        from parjam import faults
+
+        if self.mpi.Get_rank() == 0:
+            _write(self.path, self.params, self.done, self.pending)
+        self._written = time.monotonic()
+        faults.point("pack.checkpoint")  # PARJAM_FAULT testing hook (parjam/faults.py)
+
+    def remove(self):
+        """The member is written: its checkpoint goes."""
+        if self.mpi.Get_rank() == 0 and os.path.exists(self.path):
+            os.remove(self.path)
+
+
+def remove_empty_directory(out):
+    """At the end of a run (no group writes any more): DIR/.checkpoint if nothing is left in it."""
+    try:
+        os.rmdir(os.path.join(out, DIRECTORY))
+    except OSError:  # a member's checkpoint is still there (it failed), or there never was one
+        pass
+
+
+def _write(path, params, done, pending):
+    with io.atomic_h5(path) as f:
+        f.attrs["format"] = FORMAT
+        f.attrs["params"] = params
+        for k, rec in enumerate(done):
+            g = f.create_group(f"done/{k:05d}")
+            g["pos"] = rec["pos"]
+            res = rec["result"]
+            g.attrs.update({"L": rec["L"], "force_calls": rec["force_calls"],
+                            "status": res.status, "energy": res.energy, "fmax": res.fmax,
+                            "fire_steps": res.fire_steps, "newton_steps": res.newton_steps})
+        if pending is not None:
+            g = f.create_group("pending")
+            st = pending["state"]
+            g["pos"] = pending["pos"]
+            g["v"] = st.fire.v
+            g.attrs.update({"call": pending["call"], "L": pending["L"], "round": st.round,
+                            "force_calls": pending["force_calls"],
+                            "tol": st.tol, "fire_rel": st.fire_rel, "fire_steps": st.fire_steps,
+                            "newton_steps": st.newton_steps, "dt": st.fire.dt, "a": st.fire.a,
+                            "n_pos": st.fire.n_pos, "step": st.fire.step})
+
+
+def _read(path):
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if int(f.attrs["format"]) != FORMAT:
+            raise ValueError(f"format {f.attrs['format']} (this parjam reads {FORMAT})")
+        done = []
+        for name in sorted(f.get("done", {})):
+            g = f["done"][name]
+            a = g.attrs
+            res = MinResult(str(a["status"]), float(a["energy"]), float(a["fmax"]),
+                            int(a["fire_steps"]), int(a["newton_steps"]))
+            done.append({"pos": g["pos"][()], "L": float(a["L"]), "result": res,
+                         "force_calls": int(a["force_calls"])})
+        pending = None
+        if "pending" in f:
+            g = f["pending"]
+            a = g.attrs
+            fs = FireState(g["v"][()], float(a["dt"]), float(a["a"]), int(a["n_pos"]),
+                           int(a["step"]))
+            st = MinimiseState(int(a["round"]), float(a["tol"]), float(a["fire_rel"]),
+                               int(a["fire_steps"]), int(a["newton_steps"]), fs)
+            pending = {"call": int(a["call"]), "pos": g["pos"][()], "L": float(a["L"]),
+                       "force_calls": int(a["force_calls"]), "state": st}
+        return {"params": str(f.attrs["params"]), "done": done, "pending": pending}
