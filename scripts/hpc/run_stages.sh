@@ -11,7 +11,8 @@
 #
 # Resume on requeue: a stage that finished leaves $OUT/.done/NAME and is skipped when the job
 # runs again; an unfinished stage is rerun with the *same command*, so commands that skip their
-# finished work (parjam pack skips members whose files exist) lose only the member in progress.
+# finished work (parjam pack skips members whose files exist, and resumes the member in progress
+# from its checkpoint, --checkpoint-every, default 300 s) lose at most that interval.
 # Output (HDF5 files, -log_view per stage, stdout/stderr per stage) goes to $OUT on scratch;
 # copy results home with PARJAM_COPY_BACK=DIR.
 #
