@@ -14,8 +14,9 @@ matrix pattern is the neighbour list of the moment.
 
 The file (``DIR/.checkpoint/memberMMMM.h5``) is rewritten atomically by rank 0 of the member's
 group at most every ``every`` seconds (and not at all with ``every <= 0``), and removed when the
-member's results are written.  It records the run's parameters and is ignored (with a note) if
-they differ.
+member's results are written.  It records the run's parameters and parjam's version and is
+ignored (with a note) if they differ; a record whose volume fraction is not the one the protocol
+asks for ends the replay there.
 """
 
 import json
@@ -24,7 +25,7 @@ import time
 
 import numpy as np
 
-from parjam import io
+from parjam import __version__, io
 from parjam.minimize import FireState, MinimiseState, MinResult
 
 DIRECTORY = ".checkpoint"
@@ -42,7 +43,8 @@ class Checkpoint:
         self.path = path
         self.mpi = comm.tompi4py()
         self.every = float(every)
-        self.params = json.dumps(params, sort_keys=True)
+        # the parjam version too: another version may take the protocol another way
+        self.params = json.dumps({**params, "parjam": __version__}, sort_keys=True)
         self.done = []  # finished minimisations: dicts with pos, L, result, force_calls
         self.pending = None  # the one in progress: dict with call, pos, L, state
         self._written = time.monotonic()
@@ -71,6 +73,11 @@ class Checkpoint:
     def finished(self, call):
         """The record of minimisation number ``call`` if it finished before, else None."""
         return self.done[call] if call < len(self.done) else None
+
+    def discard_from(self, call):
+        """Forget minimisation ``call`` and all after it (the protocol went another way)."""
+        del self.done[call:]
+        self.pending = None
 
     def in_progress(self, call):
         """(positions, force evaluations so far, MinimiseState) of minimisation ``call`` if it

@@ -132,6 +132,11 @@ class Jammer:
         call, ck = self.calls, self.checkpoint
         self.calls += 1
         record = ck.finished(call) if ck is not None else None
+        if record is not None and phi is not None and record["L"] != self.pack.box_for_phi(phi):
+            self._log(f"checkpoint record {call + 1} is at another volume fraction than this "
+                      f"protocol asks for: recomputing from there")
+            ck.discard_from(call)
+            record = None
         if record is not None:
             return self._replay(record)
         if phi is not None:
