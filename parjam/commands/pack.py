@@ -159,8 +159,9 @@ def _terminate_handler(out):
             for path in glob.glob(os.path.join(directory, f".*.tmp{os.getpid()}")):
                 with contextlib.suppress(OSError):
                     os.remove(path)
-        print("parjam: interrupted (SIGTERM): finished members are kept; the same command "
-              "resumes the run", file=sys.stderr, flush=True)
+        print("parjam: interrupted (SIGTERM): finished members are kept, and members in progress "
+              "have their checkpoints; the same command resumes the run", file=sys.stderr,
+              flush=True)
         if MPI.COMM_WORLD.Get_size() > 1:
             MPI.COMM_WORLD.Abort(128 + signum)
         os._exit(128 + signum)
