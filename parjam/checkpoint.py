@@ -8,9 +8,9 @@ checkpoint holds, for each finished minimisation, its result and the configurati
 and for the one in progress, the positions and FIRE's state (velocities, time step, mixing,
 counters; ``minimize.MinimiseState``).  On resume the finished minimisations are replayed from the
 record, without computing, and the one in progress continues its FIRE run.  The forces do not
-depend on when the neighbour list was built (overlapping pairs are summed in (i, j) order), so
-that FIRE trajectory continues bitwise; a later Newton phase can differ at round-off, since its
-matrix pattern is the neighbour list of the moment.
+depend on when the neighbour list was built (overlapping pairs are summed in (i, j) order), and
+Newton rebuilds the list when it starts (so its matrix pattern depends on the positions only):
+a resumed run follows the uninterrupted trajectory bitwise, on one rank.
 
 The file (``DIR/.checkpoint/memberMMMM.h5``) is rewritten atomically by rank 0 of the member's
 group at most every ``every`` seconds (and not at all with ``every <= 0``), and removed when the
@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from parjam import __version__, io
+from parjam.errors import ParjamError
 from parjam.minimize import FireState, MinimiseState, MinResult
 
 DIRECTORY = ".checkpoint"
@@ -122,7 +123,11 @@ class Checkpoint:
         from parjam import faults
 
         if self.mpi.Get_rank() == 0:
-            _write(self.path, self.params, self.done, self.pending)
+            try:
+                _write(self.path, self.params, self.done, self.pending)
+            except OSError as exc:  # e.g. a full disk: end every rank with one line
+                raise ParjamError(f"cannot write checkpoint {self.path}: {exc}",
+                                  collective=False) from None
         self._written = time.monotonic()
         faults.point("pack.checkpoint")  # PARJAM_FAULT testing hook (parjam/faults.py)
 

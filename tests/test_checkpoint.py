@@ -204,6 +204,24 @@ def test_record_of_another_volume_fraction_ends_the_replay(world, shared_tmp, mo
     _assert_same(out, reference, exact=world.getSize() == 1)
 
 
+@pytest.mark.serial
+def test_unwritable_checkpoint_is_a_one_line_error(tmp_path, monkeypatch, capsys):
+    """A checkpoint that cannot be written (full disk) ends the run with a one-line error and
+    exit status 2, and no member file (on several ranks it aborts them all: a non-collective
+    error, tests/test_robustness_mpi.py)."""
+
+    def full_disk(*args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(checkpoint, "_write", full_disk)
+    out = str(tmp_path / "run")
+    assert _pack(out) == 2
+    err = capsys.readouterr().err
+    assert "parjam: error: cannot write checkpoint" in err and "No space left" in err, err
+    assert "Traceback" not in err
+    assert not [n for n in os.listdir(out) if n.endswith(".h5")]
+
+
 def test_negative_checkpoint_interval_is_refused(shared_tmp):
     out = os.path.join(shared_tmp, "ckpt-bad")
     assert cli.main(ARGS + ["--out", out, "--checkpoint-every", "-1"]) == 2
