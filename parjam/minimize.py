@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from parjam import env
+from parjam import env, factor
 
 
 @dataclass
@@ -129,49 +129,24 @@ def _linear_solver(ff, H):
     if ksp is None:
         ksp = PETSc.KSP().create(comm=ff.comm)
         ksp.setOptionsPrefix("newton_")
-        pc = ksp.getPC()
         if ff.n * ff.d > NEWTON_CG_DOF:
             ksp.setType("cg")
-            pc.setType("gamg")
+            ksp.getPC().setType("gamg")
             ksp.setTolerances(rtol=1e-8, max_it=5000)
         else:
-            ksp.setType("preonly")
-            pc.setType("cholesky")
-            if env.has_mumps():
-                pc.setFactorSolverType("mumps")
-            elif ff.comm.getSize() == 1:
-                pc.setType("lu")
+            factor.direct_cholesky(ksp, fallback="lu" if ff.comm.getSize() == 1 else None)
         ksp.setFromOptions()
         ff.newton_ksp = ksp
     ksp.setOperators(H)
     return ksp
 
 
-def _negative_pivots(ksp):
-    """Number of negative pivots of the LDL^T factorisation (MUMPS INFOG(12)): the count of
-    negative eigenvalues of the factorised matrix, by Sylvester's law of inertia; None when the
-    factorisation is not MUMPS."""
-    pc = ksp.getPC()
-    if pc.getType() != "cholesky" or pc.getFactorSolverType() != "mumps":
-        return None
-    return int(pc.getFactorMatrix().getMumpsInfog(12))
-
-
 def _factor(ff, mu):
     """Factorise H + mu I (kept on ff); returns its number of negative pivots (None: unknown)."""
     ksp = _linear_solver(ff, ff.hessian(shift=mu))
-    _mumps_counts_inertia(ksp, ff.comm.getSize())
+    factor.exact_inertia(ksp.getPC())
     ksp.setUp()
-    return _negative_pivots(ksp)
-
-
-def _mumps_counts_inertia(ksp, size):
-    """On several ranks MUMPS factorises the root front with ScaLAPACK, which does not count
-    negative pivots; ICNTL(13) = 1 keeps the root sequential so that INFOG(12) is exact."""
-    pc = ksp.getPC()
-    if size > 1 and pc.getType() == "cholesky" and pc.getFactorSolverType() == "mumps":
-        pc.setFactorSetUpSolverType()
-        pc.getFactorMatrix().setMumpsIcntl(13, 1)
+    return factor.negative_pivots(ksp.getPC())
 
 
 def _remove_translations(ff, vec):

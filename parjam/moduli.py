@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, hessian, potential
+from parjam import env, factor, hessian, potential
 from parjam.errors import ParjamError
 from parjam.network import analyze
 
@@ -270,12 +270,7 @@ def response_solver(comm, D, P):
     ksp.setType("cg")
     ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
     ksp.setTolerances(rtol=1e-11, atol=0.0, max_it=1000)
-    pc = ksp.getPC()
-    pc.setType("cholesky")
-    if env.has_mumps():
-        pc.setFactorSolverType("mumps")
-    elif comm.getSize() > 1:
-        pc.setType("gamg")
+    factor.use_cholesky(ksp.getPC(), fallback="gamg" if comm.getSize() > 1 else None)
     ksp.setFromOptions()
     return ksp
 

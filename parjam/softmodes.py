@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, hessian, potential, spectrum
+from parjam import env, factor, hessian, potential, spectrum
 from parjam.errors import ParjamError
 from parjam.network import Contacts, analyze
 
@@ -286,12 +286,8 @@ def count_below(comm, M, s, prefix="soft_inertia_"):
     try:
         pc.setOptionsPrefix(prefix)
         pc.setOperators(As)
-        pc.setType("cholesky")
-        pc.setFactorSolverType("mumps")
-        pc.setFactorSetUpSolverType()
-        F = pc.getFactorMatrix()
-        F.setMumpsIcntl(13, 1)
-        F.setMumpsIcntl(24, 1)
+        factor.use_cholesky(pc)
+        factor.exact_inertia(pc, null_pivots=True)
         pc.setFromOptions()
         pc.setUp()
         neg, zero, _ = pc.getFactorMatrix().getInertia()
@@ -492,7 +488,7 @@ def _factorised(comm, M, shift, prefix):
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
     ksp = PETSc.KSP().create(comm=comm)
     ksp.setOperators(A)
-    spectrum.direct_cholesky(ksp)
+    factor.direct_cholesky(ksp)
     ksp.setOptionsPrefix(prefix)
     ksp.setFromOptions()
     try:

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, hessian, network, observables
+from parjam import env, factor, hessian, network, observables
 from parjam.errors import ParjamError, UnjammedError
 
 METHODS = ("auto", "dense", "sinvert", "slice")
@@ -381,19 +381,11 @@ class _OptionDefaults:
             opts.delValue(name)
 
 
-def direct_cholesky(ksp):
-    """Make ``ksp`` a direct MUMPS Cholesky (LDL^T) solve: preonly, no Krylov iterations."""
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("cholesky")
-    pc.setFactorSolverType("mumps")
-
-
 def configure_sinvert(eps):
     """Shift-and-invert with a direct MUMPS Cholesky (LDL^T) factorisation, no Krylov solve."""
     st = eps.getST()
     st.setType("sinvert")
-    direct_cholesky(st.getKSP())
+    factor.direct_cholesky(st.getKSP())
 
 
 def sinvert_eps(A, k, target, abstol, deflation):
