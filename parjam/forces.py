@@ -70,8 +70,10 @@ class ForceField:
     # --- neighbour list (Verlet list with skin) ------------------------------------------------
     def _update_pairs(self, pos):
         if self.pairs is not None:
-            disp = min_image(pos - self.ref_pos, self.L)
-            if np.max(np.einsum("ij,ij->i", disp, disp)) < (0.5 * self.skin) ** 2:
+            # largest displacement since the last rebuild: each rank checks its own particles
+            disp = min_image(pos[self.lo:self.hi] - self.ref_pos[self.lo:self.hi], self.L)
+            moved = np.einsum("ij,ij->i", disp, disp).max() if len(disp) else 0.0
+            if self.mpi.allreduce(moved, op=_max()) < (0.5 * self.skin) ** 2:
                 return
         pairs = neighbour_pairs(wrap(pos, self.L), self.L, self.diam.max() + self.skin)
         i, j = pairs[:, 0], pairs[:, 1]
