@@ -1,5 +1,8 @@
 """Energy minimisation to force balance: FIRE to a loose tolerance, then Newton steps with the
-exact Hessian through PETSc (KSP, MUMPS factorisation) down to the round-off floor.
+exact Hessian through PETSc (KSP, MUMPS factorisation) down to the round-off floor.  For large
+systems (more than FIRE_TAIL_DOF degrees of freedom) FIRE goes on to the tolerance itself and
+Newton is only the fall-back when FIRE does not get there: a Newton step then costs thousands of
+FIRE steps.
 
 FIRE: Bitzek et al., PRL 97, 170201 (2006), with the FIRE 2.0 half-step back-off of Guenole et
 al., Comput. Mater. Sci. 175, 109584 (2020).  Newton: Levenberg-Marquardt shift mu ~ max|F| so
@@ -246,9 +249,22 @@ class MinimiseState:
     fire: FireState
 
 
+# Above this many degrees of freedom FIRE itself converges to ftol; Newton is only the fall-back
+# when FIRE does not (its step cap).  Measured with scripts/pack_steps.py (the extrapolation
+# protocol to dphi = 1e-3, 3D, 1 rank, same seeds, one other job on the second core; docs/scaling.md
+# "Session 7"), time of FIRE + Newton against FIRE alone: N = 1024 12.4 s / 11.3 s (4 seeds),
+# 4096 95 / 56 s (3), 8192 558 / 290 s (4), 16384 1446 / 989 s (3), 32768 3765 / 1329 s (1, where
+# Newton's CG + GAMG steps took 77 % of the run); at dphi = 1e-6, N = 4096
+# (2 seeds) 247 / 211 s.  FIRE alone needs
+# more FIRE steps (up to 1.5x), but a Newton step costs ~10^3 (MUMPS) to 10^4 (CG) of them.
+# Below this size the Newton tail is as cheap and keeps the tests' small packings on it.
+FIRE_TAIL_DOF = 6000
+
+
 def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_params=None,
              attempts=8, snapshot=None, resume=None):
-    """FIRE until max|F| < fire_rel * (mean contact force), then Newton to ftol.
+    """FIRE until max|F| < fire_rel * (mean contact force), then Newton to ftol; above
+    FIRE_TAIL_DOF degrees of freedom FIRE until max|F| < ftol (fire_rel = 0).
 
     Returns "unjammed" as soon as the energy drops below ``e_stop`` (useful in the phi_c
     bisection: the energy only decreases during minimisation).  Newton starts only where the
@@ -262,6 +278,8 @@ def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_
     """
     params = fire_params or FireParams()
     total = MinResult("not converged", np.nan, np.nan)
+    if ff.n * ff.d > FIRE_TAIL_DOF:
+        fire_rel = 0.0
     first, start = 0, None
     if resume is not None:
         first, fire_rel, start = resume.round, resume.fire_rel, resume.fire
@@ -279,7 +297,8 @@ def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_
                 total.status = "unjammed" if nres.energy < e_stop else "converged"
                 return total
             fire_rel *= 0.1
-            tol = max(0.1 * ftol, fire_rel * _force_scale(ff))
+            # FIRE alone (fire_rel = 0) aims at ftol itself: below it lies the round-off floor
+            tol = max(0.1 * ftol, fire_rel * _force_scale(ff)) if fire_rel > 0 else ftol
         hook = None
         if snapshot is not None:
             before = (rnd, tol, fire_rel, total.fire_steps, total.newton_steps)

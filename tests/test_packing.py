@@ -221,6 +221,36 @@ def test_newton_with_cg_gamg_reaches_the_same_minimum():
     assert np.abs(d).max() < 1e-8
 
 
+def test_fire_to_the_tolerance_reaches_the_newton_minimum(monkeypatch):
+    """Above minimize.FIRE_TAIL_DOF FIRE converges to ftol by itself (no Newton step): from the
+    same start it ends in the minimum that FIRE + Newton finds, and that minimum is stable (its
+    dense Hessian has no negative eigenvalue beyond round-off)."""
+    from parjam import minimize
+    from parjam.ensemble import member_rng
+    from parjam.packing import Jammer, random_packing
+
+    PETSc = env.petsc()
+    out = []
+    for tail_dof in (10**9, 0):  # FIRE + Newton (default at this size), then FIRE alone
+        monkeypatch.setattr(minimize, "FIRE_TAIL_DOF", tail_dof)
+        jam = Jammer(PETSc.COMM_SELF, random_packing(3, 256, 0.70, 2.0, "mono", 1.4,
+                                                     member_rng(9, 0)))
+        st = jam.at_phi(0.70, "q")
+        H = jam.ff.hessian().convert("dense").getDenseArray().copy()
+        out.append((st.pack, st.result, jam.total_newton, H))
+        jam.destroy()
+    (p0, r0, n0, _), (p1, r1, n1, H1) = out
+    assert r0.fmax <= 1e-13 and r1.fmax <= 1e-13
+    assert n0 > 0 and n1 == 0
+    assert r1.energy == pytest.approx(r0.energy, rel=1e-12)
+    d = p1.pos - p0.pos
+    d -= p0.L * np.rint(d / p0.L)
+    d -= d.mean(axis=0)  # the minimum is defined up to a global translation
+    assert np.abs(d).max() < 1e-9
+    lam = np.linalg.eigvalsh(0.5 * (H1 + H1.T))
+    assert lam[0] > -1e-10 * lam[-1]
+
+
 def test_random_start_numbers_neighbours_nearby():
     """Particles are numbered cell by cell (parjam.packing.spatial_order): the index distance
     of neighbour pairs is small against N (random numbering: ~N/3), every cell's particles are
