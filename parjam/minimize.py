@@ -254,9 +254,9 @@ class MinimiseState:
 # protocol to dphi = 1e-3, 3D, 1 rank, same seeds, one other job on the second core; docs/scaling.md
 # "Session 7"), time of FIRE + Newton against FIRE alone: N = 1024 12.4 s / 11.3 s (4 seeds),
 # 4096 95 / 56 s (3), 8192 558 / 290 s (4), 16384 1446 / 989 s (3), 32768 3765 / 1329 s (1, where
-# Newton's CG + GAMG steps took 77 % of the run); at dphi = 1e-6, N = 4096
-# (2 seeds) 247 / 211 s.  FIRE alone needs
-# more FIRE steps (up to 1.5x), but a Newton step costs ~10^3 (MUMPS) to 10^4 (CG) of them.
+# Newton's CG + GAMG steps took 77 % of the run); at dphi = 1e-6, N = 4096 (2 seeds) 247 / 211 s.
+# FIRE alone needs more FIRE steps (up to 1.5x), but a Newton step costs ~10^3 (MUMPS) to 10^4
+# (CG + GAMG) of them.
 # Below this size the Newton tail is as cheap and keeps the tests' small packings on it.
 FIRE_TAIL_DOF = 6000
 

@@ -23,6 +23,10 @@ LATENCY below, typical of an InfiniBand cluster):
                     1024); the analysis (ordering) is sequential on one rank unless ICNTL(28) = 2
                     with ParMETIS/PT-SCOTCH
 - MUMPS solve       t = 2 entries / (P r_s eff(P)) per solve, r_s the measured rate
+- packing           (with --pack-steps) FIRE steps = c_S N^e_S, fitted to the step counts of
+                    scripts/pack_steps.py (the extrapolation protocol to dphi = 1e-3, which do
+                    not depend on P), times one force evaluation per step; neighbour rebuilds
+                    and Newton steps are left out, so this is a lower bound
 """
 
 import argparse
@@ -99,7 +103,7 @@ def predict(m, n, p, k=100, moments=512, probes=16):
     solve = 2 * entries / (p * m["solve_rate"] * eff)
     halo = 2 * 8 * 3 * 6 * (n / p) ** (2 / 3)
     matvec = m["matvec_a"] * nnz / p + halo / B_NET + 26 * LATENCY
-    return {
+    out = {
         "force": m["force_a"] * n / p + m["force_g"] * n,
         "force_replicated_share": m["force_g"] * n / (m["force_a"] * n / p + m["force_g"] * n),
         "neighbours": m["neigh_c"] * n * np.log(n),
@@ -113,6 +117,10 @@ def predict(m, n, p, k=100, moments=512, probes=16):
         "replicated_GB_per_rank": 8 * 3 * n * 3 / 1e9,  # positions, gathered copy, k-d tree
         "matrix_GB_per_rank": 12 * nnz / p / 1e9,
     }
+    if "steps_c" in m:
+        out["pack_steps"] = m["steps_c"] * n ** m["steps_e"]
+        out["pack"] = out["pack_steps"] * out["force"]
+    return out
 
 
 def hms(s):
@@ -125,6 +133,16 @@ def hms(s):
     if s < 3 * 86400:
         return f"{s / 3600:.1f} h"
     return f"{s / 86400:.0f} d"
+
+
+def pack_steps_fit(path):
+    """(c_S, e_S, N values) of mean total FIRE steps = c_S N^e_S over scripts/pack_steps.py runs."""
+    with open(path) as fh:
+        rows = [json.loads(line) for line in fh if line.strip()]
+    ns = sorted({r["n"] for r in rows})
+    means = [np.mean([r["fire"] for r in rows if r["n"] == n]) for n in ns]
+    c, e = powerfit(ns, means)
+    return c, e, ns
 
 
 def tables(m, records):
@@ -151,14 +169,18 @@ def tables(m, records):
             f"- MUMPS: flops = {m['flops_c']:.3g} dof^{m['flops_e']:.2f}, factor entries = "
             f"{m['entries_c']:.3g} dof^{m['entries_e']:.2f}; rates {m['factor_rate'] / 1e9:.2f} "
             f"Gflop/s (factor), {m['solve_rate'] / 1e9:.2f} Gflop/s (solve) on one core",
+            *([f"- packing: {m['steps_c']:.3g} N^{m['steps_e']:.2f} FIRE steps to dphi = 1e-3 "
+               f"(scripts/pack_steps.py, N = {m['steps_n'][0]}..{m['steps_n'][-1]})"]
+              if "steps_c" in m else []),
             "- 2 ranks against 1 (speed-up per phase; the 2 cores were shared with other jobs): "
             + "; ".join(f"N = {n}: " + ", ".join(f"{k[:-2]} {v:.2f}x" for k, v in s.items())
                         for n, s in m["speedup_2"].items()),
             "", "### Extrapolated (per call; lowest 100 modes = 1 factorisation + 200 solves; "
             "KPM = 512 moments x 16 probes)", "",
             "| N | ranks | force eval | (replicated share) | neighbour search | assembly | "
-            "MUMPS factor | factor GB/rank | solve | lowest 100 modes | KPM matvec | KPM D(omega) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "MUMPS factor | factor GB/rank | solve | lowest 100 modes | KPM matvec | KPM D(omega) |"
+            + (" packing at dphi = 1e-3 (FIRE steps) |" if "steps_c" in m else ""),
+            "|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if "steps_c" in m else "")]
     for n in (1e5, 1e6, 1e7):
         for p in (2, 64, 256, 1024):
             if n < 1e6 and p > 2:
@@ -167,7 +189,8 @@ def tables(m, records):
             out.append(f"| {n:.0e} | {p} | {hms(q['force'])} | {q['force_replicated_share']:.0%}"
                        f" | {hms(q['neighbours'])} | {hms(q['assembly'])} | {hms(q['factor'])} | "
                        f"{q['factor_GB_per_rank']:.2g} | {hms(q['solve'])} | "
-                       f"{hms(q['sinvert_k'])} | {hms(q['matvec'])} | {hms(q['kpm'])} |")
+                       f"{hms(q['sinvert_k'])} | {hms(q['matvec'])} | {hms(q['kpm'])} |"
+                       + (f" {hms(q['pack'])} ({q['pack_steps']:.2g}) |" if "pack" in q else ""))
     out += ["", END]
     return "\n".join(out) + "\n"
 
@@ -177,10 +200,14 @@ def main():
     ap.add_argument("profile", help="JSON list from profile_phases.py")
     ap.add_argument("--md", help="write the tables into this page between the markers")
     ap.add_argument("--json", help="write the fitted model here")
+    ap.add_argument("--pack-steps", help="JSON lines of scripts/pack_steps.py: adds the packing "
+                    "time at dphi = 1e-3 to the extrapolation")
     args = ap.parse_args()
     with open(args.profile) as f:
         records = json.load(f)
     m = fit(records)
+    if args.pack_steps:
+        m["steps_c"], m["steps_e"], m["steps_n"] = pack_steps_fit(args.pack_steps)
     text = tables(m, records)
     if args.json:
         with open(args.json, "w") as f:
