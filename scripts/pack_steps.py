@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """How the cost of a packing at dphi grows with N: the FIRE and Newton steps of every
-minimisation of `parjam pack --phic-method extrapolate --phi-start 0.70 --dphi DPHI` (3D,
-monodisperse, harmonic), per N and seed, one rank per run.
+minimisation of `parjam pack --phic-method extrapolate --phi-start 0.70 --dphi DPHI` (3D
+monodisperse by default; --dim 2 --dispersity bi for 2D; harmonic), per N and seed, one rank
+per run.
 
 Step counts do not depend on the machine's load, so several runs may share the cores (their wall
 times then do).  Each finished run is appended as one JSON line to --json; --report reads that
@@ -64,14 +65,16 @@ class Recorder:
         self.mod.fire, self.mod.newton, self.mod.minimise = self.orig
 
 
-def run_one(n, seed, dphi, phi_start):
-    from parjam import env
+def run_one(n, seed, dphi, phi_start, dim=3, dispersity="mono", tail_dof=None):
+    from parjam import env, minimize
 
     PETSc = env.petsc()
     from parjam.ensemble import member_rng
     from parjam.packing import Jammer, random_packing
 
-    pack = random_packing(3, n, phi_start, rng=member_rng(seed, 0))
+    if tail_dof is not None:  # A/B of FIRE's tail against Newton's (minimize.FIRE_TAIL_DOF)
+        minimize.FIRE_TAIL_DOF = tail_dof
+    pack = random_packing(dim, n, phi_start, dispersity=dispersity, rng=member_rng(seed, 0))
     t0 = time.perf_counter()
     with Recorder() as rec:
         jam = Jammer(PETSc.COMM_SELF, pack)
@@ -80,10 +83,14 @@ def run_one(n, seed, dphi, phi_start):
             phi_c = st.info["phi_c"]
             jam.ladder(phi_c, [dphi])
             fire, newton = jam.total_fire, jam.total_newton
+            # neighbour-list rebuilds per force evaluation: the replicated part of a FIRE step
+            rebuilds, force_calls = jam.ff.n_rebuilds, jam.ff.n_force_calls
         finally:
             jam.destroy()
     return {"n": n, "seed": seed, "dphi": dphi, "phi_start": phi_start, "phi_c": phi_c,
-            "fire": fire, "newton": newton, "t": time.perf_counter() - t0, "calls": rec.calls}
+            "dim": dim, "dispersity": dispersity, "fire_tail_dof": minimize.FIRE_TAIL_DOF,
+            "fire": fire, "newton": newton, "rebuilds": rebuilds, "force_calls": force_calls,
+            "t": time.perf_counter() - t0, "calls": rec.calls}
 
 
 def load(path):
@@ -127,6 +134,10 @@ def main():
     ap.add_argument("--seeds", type=int, nargs="*", default=[1, 2, 3, 4])
     ap.add_argument("--dphi", type=float, default=1e-3)
     ap.add_argument("--phi-start", type=float, default=0.70)
+    ap.add_argument("--dim", type=int, default=3, choices=(2, 3))
+    ap.add_argument("--dispersity", default="mono", help="mono or bi (2D needs bi: mono crystallises)")
+    ap.add_argument("--fire-tail-dof", type=int, default=None,
+                    help="override minimize.FIRE_TAIL_DOF (e.g. 10**9: Newton's tail at every N)")
     ap.add_argument("--json", default=DEFAULT_JSON)
     ap.add_argument("--report", action="store_true", help="only summarise --json")
     ap.add_argument("--extrapolate", type=int, nargs="*", default=[100000])
@@ -136,7 +147,8 @@ def main():
         os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
         for n in a.n:
             for seed in a.seeds:
-                rec = run_one(n, seed, a.dphi, a.phi_start)
+                rec = run_one(n, seed, a.dphi, a.phi_start, a.dim, a.dispersity,
+                              a.fire_tail_dof)
                 print(f"N = {n} seed {seed}: {rec['fire']} FIRE steps, {rec['newton']} Newton "
                       f"steps, {rec['t']:.1f} s, phi_c = {rec['phi_c']:.8f}", flush=True)
                 with open(a.json, "a") as fh:
