@@ -1,8 +1,10 @@
 """Energy and forces of one packing whose state lives in distributed PETSc Vecs.
 
 Each rank owns a contiguous range of particles (PETSc's split, block size d).  Positions are
-gathered to every rank (VecScatter to all) for the neighbour search; each rank keeps the
-neighbour pairs that touch its particles and computes the forces on them only.  Forces on a
+gathered to every rank (VecScatter to all) only when the Verlet list is rebuilt; each rank then
+searches the pairs that touch its particles (a k-d tree of its block and the shell around it, not
+of all N) and computes the forces on them only.  Between rebuilds a force evaluation fetches just the positions of the particles those
+pairs touch (its own and a halo of ghosts, one VecScatter), not all N.  Forces on a
 particle are summed over its pairs in global (i, j) order, so they are bitwise independent of
 the number of ranks.  Scalars (energy, max |F|) are reduced over the communicator.
 """
@@ -10,7 +12,7 @@ the number of ranks.  Scalars (energy, max |F|) are reduced over the communicato
 import numpy as np
 
 from parjam import env, hessian, kernels
-from parjam.system import min_image, neighbour_pairs, pair_geometry, wrap
+from parjam.system import min_image, neighbour_pairs_touching, pair_geometry, wrap
 
 
 class ForceField:
@@ -35,6 +37,7 @@ class ForceField:
         self._hess = None  # Hessian kept between Newton steps (see hessian())
         self._hess_pairs = None
         self.newton_ksp = None  # its factorisation, kept by minimize.newton
+        self.halo_scatter = self.halo_x = None  # see _build_halo
 
     def set_box(self, L):
         self.L = float(L)
@@ -68,21 +71,64 @@ class ForceField:
         return vec.array.reshape(-1, self.d)
 
     # --- neighbour list (Verlet list with skin) ------------------------------------------------
+    def _stale(self, own):
+        """True when the list must be rebuilt: none yet, or some particle moved more than half
+        the skin since the last rebuild (each rank checks its own ``own`` positions; one MPI
+        max)."""
+        if self.pairs is None:
+            return True
+        disp = min_image(own - self.ref_own, self.L)
+        moved = np.einsum("ij,ij->i", disp, disp).max() if len(disp) else 0.0
+        return self.mpi.allreduce(moved, op=_max()) >= (0.5 * self.skin) ** 2
+
     def _update_pairs(self, pos):
-        if self.pairs is not None:
-            # largest displacement since the last rebuild: each rank checks its own particles
-            disp = min_image(pos[self.lo:self.hi] - self.ref_pos[self.lo:self.hi], self.L)
-            moved = np.einsum("ij,ij->i", disp, disp).max() if len(disp) else 0.0
-            if self.mpi.allreduce(moved, op=_max()) < (0.5 * self.skin) ** 2:
-                return
-        pairs = neighbour_pairs(wrap(pos, self.L), self.L, self.diam.max() + self.skin)
-        i, j = pairs[:, 0], pairs[:, 1]
-        mine = ((i >= self.lo) & (i < self.hi)) | ((j >= self.lo) & (j < self.hi))
-        self.pairs = pairs[mine]
+        if self._stale(pos[self.lo:self.hi]):
+            self._rebuild(pos)
+
+    def _rebuild(self, pos):
+        """Verlet list at the full positions ``pos`` (collective), and the halo for it."""
+        self.pairs = neighbour_pairs_touching(pos, self.L, self.diam.max() + self.skin,
+                                              self.lo, self.hi)
         self.pairs_i = np.ascontiguousarray(self.pairs[:, 0])
         self.pairs_j = np.ascontiguousarray(self.pairs[:, 1])
-        self.ref_pos = pos.copy()
+        self.ref_own = np.array(pos[self.lo:self.hi])
         self.n_rebuilds += 1
+        self._build_halo()
+
+    def _build_halo(self):
+        """The particles this rank's pairs touch, sorted (its own form the contiguous block
+        [halo_lo, halo_hi)), the pairs renumbered into that list, and the scatter that fetches
+        their positions.  On one rank the halo is everything and no scatter is needed."""
+        PETSc = env.petsc()
+        if self.halo_scatter is not None:
+            self.halo_scatter.destroy()
+            self.halo_x.destroy()
+            self.halo_scatter = self.halo_x = None
+        if self.comm.getSize() == 1:
+            self.halo_i, self.halo_j, self.halo_diam = self.pairs_i, self.pairs_j, self.diam
+            self.halo_lo, self.halo_hi = 0, self.n
+            return
+        need = np.union1d(np.arange(self.lo, self.hi, dtype=np.int64),
+                          np.concatenate([self.pairs_i, self.pairs_j]))
+        self.halo_i = np.ascontiguousarray(np.searchsorted(need, self.pairs_i), dtype=np.int64)
+        self.halo_j = np.ascontiguousarray(np.searchsorted(need, self.pairs_j), dtype=np.int64)
+        self.halo_diam = np.ascontiguousarray(self.diam[need])
+        self.halo_lo = int(np.searchsorted(need, self.lo))
+        self.halo_hi = self.halo_lo + (self.hi - self.lo)
+        index = PETSc.IS().createBlock(self.d, need.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+        self.halo_x = PETSc.Vec().createSeq(len(need) * self.d, bsize=self.d,
+                                            comm=PETSc.COMM_SELF)
+        self.halo_scatter = PETSc.Scatter().create(self.x, index, self.halo_x, None)
+        index.destroy()
+
+    def _halo_positions(self):
+        """Positions of the halo particles (collective on several ranks), (n_halo, d)."""
+        if self.halo_scatter is None:
+            return self.x.array_r.reshape(self.n, self.d)
+        PETSc = env.petsc()
+        self.halo_scatter.scatter(self.x, self.halo_x, PETSc.InsertMode.INSERT,
+                                  PETSc.ScatterMode.FORWARD)
+        return self.halo_x.array_r.reshape(-1, self.d)
 
     def renew_neighbours(self):
         """Drop the neighbour list: the next evaluation rebuilds it at the current positions.
@@ -102,10 +148,11 @@ class ForceField:
     def evaluate(self, f):
         """Write the forces on owned particles into Vec f; return the total energy."""
         self.n_force_calls += 1
-        pos = self.gather()
-        self._update_pairs(pos)
-        e_local = kernels.pair_forces(self.pairs_i, self.pairs_j, pos, self.diam, self.L,
-                                      self.alpha, self.eps, self.lo, self.hi, self.local(f))
+        if self._stale(self.x.array_r.reshape(-1, self.d)):
+            self._rebuild(self.gather())
+        e_local = kernels.pair_forces(self.halo_i, self.halo_j, self._halo_positions(),
+                                      self.halo_diam, self.L, self.alpha, self.eps,
+                                      self.halo_lo, self.halo_hi, self.local(f))
         return self.mpi.allreduce(e_local)
 
     def max_norm(self, f):
@@ -147,6 +194,9 @@ class ForceField:
             self.newton_ksp.destroy()
         self.scatter.destroy()
         self.xall.destroy()
+        if self.halo_scatter is not None:
+            self.halo_scatter.destroy()
+            self.halo_x.destroy()
         self.x.destroy()
 
 

@@ -106,6 +106,44 @@ def neighbour_pairs(pos, L, cutoff):
     return pairs[order]
 
 
+def neighbour_pairs_touching(pos, L, cutoff, lo, hi):
+    """``neighbour_pairs(pos, L, cutoff)`` restricted to the pairs with a particle in [lo, hi),
+    in the same (i, j) order, from a k-d tree of the candidates only: the particles inside the
+    periodic bounding box of [lo, hi) grown by the cutoff.  For a rank's block of cell-ordered
+    particles that is its slab or block and a shell, not all N."""
+    pos = wrap(np.asarray(pos, dtype=np.float64), L)
+    cand = _box_candidates(pos, L, cutoff, lo, hi)
+    if len(cand) == len(pos):  # one rank, or a block that spans the box
+        pairs = neighbour_pairs(pos, L, cutoff)
+    elif len(cand) > 1:
+        pairs = cand[neighbour_pairs(pos[cand], L, cutoff)]
+    else:
+        pairs = np.zeros((0, 2), dtype=np.int64)
+    i, j = pairs[:, 0], pairs[:, 1]
+    return pairs[((i >= lo) & (i < hi)) | ((j >= lo) & (j < hi))]
+
+
+def _box_candidates(pos, L, cutoff, lo, hi):
+    """Sorted indices of the particles within ``cutoff`` (per coordinate, periodically) of the
+    smallest periodic box that holds particles lo..hi-1 (positions wrapped into [0, L))."""
+    own = pos[lo:hi]
+    if len(own) == len(pos):
+        return np.arange(len(pos), dtype=np.int64)
+    if len(own) == 0:
+        return np.zeros(0, dtype=np.int64)
+    keep = np.ones(len(pos), dtype=bool)
+    for k in range(pos.shape[1]):
+        c = np.sort(own[:, k])
+        gaps = np.diff(c, append=c[0] + L)  # the largest gap on the circle is outside the arc
+        g = int(np.argmax(gaps))
+        length = L - gaps[g]
+        if length + 2.0 * cutoff >= L:
+            continue
+        start = c[(g + 1) % len(c)] - cutoff
+        keep &= np.mod(pos[:, k] - start, L) <= length + 2.0 * cutoff
+    return np.flatnonzero(keep).astype(np.int64)
+
+
 def pair_geometry(pos, L, diam, pairs):
     """Separation vectors r_ij = x_j - x_i (minimum image), distances and sigma_ij."""
     i, j = pairs[:, 0], pairs[:, 1]

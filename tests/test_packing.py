@@ -256,7 +256,7 @@ def test_random_start_numbers_neighbours_nearby():
     of neighbour pairs is small against N (random numbering: ~N/3), every cell's particles are
     contiguous, and bidisperse species stay mixed in space."""
     from parjam.ensemble import member_rng
-    from parjam.forces import neighbour_pairs
+    from parjam.system import neighbour_pairs
     from parjam.packing import random_packing
 
     pack = random_packing(3, 8000, 0.66, 2.0, "bi", 1.4, member_rng(3, 0))

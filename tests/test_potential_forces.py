@@ -7,6 +7,7 @@ from parjam import env, potential
 from parjam.forces import ForceField
 from parjam.network import analyze, particle_forces
 from parjam.packing import random_packing
+from parjam.system import Packing
 
 
 @pytest.mark.parametrize("alpha", [2.0, 2.5, 3.0])
@@ -44,6 +45,70 @@ def test_distributed_forces_equal_serial_bitwise(world, d):
     np.testing.assert_allclose(f1, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
     # Newton's third law: the total force vanishes
     assert np.abs(f1.sum(axis=0)).max() < 1e-12 * np.abs(f1).max()
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_halo_forces_follow_moves_between_rebuilds(world, d):
+    """Between Verlet rebuilds a force evaluation fetches only the halo of each rank's pairs:
+    after moves below half the skin (no rebuild), across the periodic boundary, and past half
+    the skin (rebuild), the forces stay bitwise those of one rank and equal the contact sum."""
+    PETSc = env.petsc()
+    pack = random_packing(d, 400, 0.9 if d == 2 else 0.7, 2.0, "bi", 1.4,
+                          np.random.default_rng(11))
+    rng = np.random.default_rng(5)
+    skin = 0.2 * pack.diam.min()
+    moves = [0.2 * skin / np.sqrt(d) * rng.uniform(-1, 1, pack.pos.shape),  # inside skin/2
+             np.full(pack.pos.shape, 0.3 * skin / np.sqrt(d)),  # pushes some across x = L
+             0.8 * skin * rng.uniform(-1, 1, pack.pos.shape)]  # past skin/2: rebuild
+    runs = []
+    for comm in (PETSc.COMM_SELF, world):
+        ff = ForceField(comm, pack.diam, pack.L, d, pack.alpha)
+        pos = pack.pos.copy()
+        ff.set_positions(pos)
+        f = ff.vec()
+        ff.evaluate(f)
+        out = []
+        for dx in moves:
+            pos = pos + dx
+            ff.set_positions(pos)  # unwrapped, as during FIRE
+            e = ff.evaluate(f)
+            out.append((e, ff.gather(f).copy(), ff.n_rebuilds))
+        runs.append(out)
+        f.destroy()
+        ff.destroy()
+    assert [r[2] for r in runs[1]] == [1, 1, 2]  # the first two evaluations reuse the list
+    for (e1, f1, _), (e2, f2, _), p in zip(runs[0], runs[1], np.cumsum(moves, axis=0)):
+        assert np.array_equal(f1, f2)
+        assert e2 == pytest.approx(e1, rel=1e-13)
+        moved = Packing(np.mod(pack.pos + p, pack.L), pack.diam, pack.L, pack.alpha)
+        ref = particle_forces(moved, analyze(moved).all_contacts)
+        np.testing.assert_allclose(f1, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_pairs_touching_a_block_match_the_full_search(d):
+    """A rank searches only its block's periodic bounding box grown by the cutoff: the pairs
+    touching the block are exactly those of the full search, in the same order, for blocks that
+    straddle the periodic boundary, single particles, empty and whole ranges."""
+    from parjam.system import _box_candidates, neighbour_pairs, neighbour_pairs_touching
+
+    n = 2000 if d == 2 else 3000
+    pack = random_packing(d, n, 0.9 if d == 2 else 0.7, 2.0, "bi", 1.4, np.random.default_rng(3))
+    cut = pack.diam.max() + 0.2 * pack.diam.min()
+    # shift the cell-ordered slabs so that some straddle x = L; unwrap some coordinates
+    pos = np.mod(pack.pos + 0.37 * pack.L, pack.L)
+    unwrapped = pos + pack.L * np.random.default_rng(4).integers(-1, 2, pos.shape)
+    full = neighbour_pairs(pos, pack.L, cut)
+    i, j = full[:, 0], full[:, 1]
+    blocks = [(0, n), (0, 1), (n // 2, n // 2 + 1), (0, n // 8), (n // 3, n // 3 + n // 8),
+              (n - n // 8, n), (n // 2, n // 2), (n // 4, 3 * n // 4)]
+    for lo, hi in blocks:
+        want = full[((i >= lo) & (i < hi)) | ((j >= lo) & (j < hi))]
+        got = neighbour_pairs_touching(unwrapped, pack.L, cut, lo, hi)
+        assert np.array_equal(got, want), (lo, hi)
+    # the point of it: a thin block's search holds a fraction of the particles
+    cand = _box_candidates(pos, pack.L, cut, n // 3, n // 3 + n // 8)
+    assert len(cand) < 0.7 * n
 
 
 @pytest.mark.parametrize("alpha", [2.0, 2.5])
