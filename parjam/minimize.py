@@ -256,7 +256,10 @@ class MinimiseState:
 # 4096 95 / 56 s (3), 8192 558 / 290 s (4), 16384 1446 / 989 s (3), 32768 3765 / 1329 s (1, where
 # Newton's CG + GAMG steps took 77 % of the run); at dphi = 1e-6, N = 4096 (2 seeds) 247 / 211 s.
 # FIRE alone needs more FIRE steps (up to 1.5x), but a Newton step costs ~10^3 (MUMPS) to 10^4
-# (CG + GAMG) of them.
+# (CG + GAMG) of them.  In 2D (bidisperse, 2 seeds each; session 8) FIRE + Newton against FIRE
+# alone: N = 4096 23.6 / 28.5 s, 8192 55.5 / 46.7 s, 16384 576 / 396 s, and 4096 at
+# dphi = 1e-6 168 / 98 s: the 2D factorisation is cheap, so the Newton tail still pays at the
+# threshold, but not above it or near jamming; one threshold serves both dimensions.
 # Below this size the Newton tail is as cheap and keeps the tests' small packings on it.
 FIRE_TAIL_DOF = 6000
 
