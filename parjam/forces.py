@@ -2,11 +2,12 @@
 
 Each rank owns a contiguous range of particles (PETSc's split, block size d).  Positions are
 gathered to every rank (VecScatter to all) only when the Verlet list is rebuilt; each rank then
-searches the pairs that touch its particles (a k-d tree of its block and the shell around it, not
-of all N) and computes the forces on them only.  Between rebuilds a force evaluation fetches just the positions of the particles those
-pairs touch (its own and a halo of ghosts, one VecScatter), not all N.  Forces on a
-particle are summed over its pairs in global (i, j) order, so they are bitwise independent of
-the number of ranks.  Scalars (energy, max |F|) are reduced over the communicator.
+searches the pairs that touch its particles (a k-d tree of its block and the shell around it,
+not of all N) and computes the forces on them only.  Between rebuilds a force evaluation fetches
+just the positions of the particles those pairs touch (its own and a halo of ghosts, one
+VecScatter).  Forces on a particle are summed over its pairs in global (i, j) order, so they
+are bitwise independent of the number of ranks.  Scalars (energy, max |F|) are reduced over
+the communicator.
 """
 
 import numpy as np

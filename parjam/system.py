@@ -132,6 +132,7 @@ def _box_candidates(pos, L, cutoff, lo, hi):
     if len(own) == 0:
         return np.zeros(0, dtype=np.int64)
     keep = np.ones(len(pos), dtype=bool)
+    cutoff = cutoff * (1.0 + 1e-9)  # a particle at the cutoff stays in despite round-off
     for k in range(pos.shape[1]):
         c = np.sort(own[:, k])
         gaps = np.diff(c, append=c[0] + L)  # the largest gap on the circle is outside the arc

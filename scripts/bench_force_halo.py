@@ -10,8 +10,9 @@ side in one run.
 
 Both variants run ``--steps`` FIRE steps (ftol = 0, so exactly that many) from the same
 perturbed positions, alternating (ABAB...) ``--repeat`` times, so that a load change on a shared
-machine hits both; then ``--rebuilds`` list rebuilds each, alternating too.  Their forces are bitwise equal (tests/test_potential_forces.py), hence the
-trajectories, neighbour-list rebuilds and final energies are the same; the script checks that.
+machine hits both; then ``--rebuilds`` list rebuilds each, alternating too.  Their forces
+are bitwise equal (tests/test_potential_forces.py), hence the trajectories, neighbour-list
+rebuilds and final energies are the same; the script checks that.
 Rank 0 prints the milliseconds per step and per rebuild of each variant and the ratios.
 """
 

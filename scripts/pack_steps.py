@@ -135,7 +135,8 @@ def main():
     ap.add_argument("--dphi", type=float, default=1e-3)
     ap.add_argument("--phi-start", type=float, default=0.70)
     ap.add_argument("--dim", type=int, default=3, choices=(2, 3))
-    ap.add_argument("--dispersity", default="mono", help="mono or bi (2D needs bi: mono crystallises)")
+    ap.add_argument("--dispersity", default="mono",
+                    help="mono or bi (2D needs bi: mono crystallises)")
     ap.add_argument("--fire-tail-dof", type=int, default=None,
                     help="override minimize.FIRE_TAIL_DOF (e.g. 10**9: Newton's tail at every N)")
     ap.add_argument("--json", default=DEFAULT_JSON)
