@@ -139,7 +139,9 @@ def predict(m, n, p, k=100, moments=512, probes=16):
         "matvec": matvec,
         "kpm": probes * (moments // 2) * matvec,
         "factor_GB_per_rank": 8 * entries / p / 1e9,
-        "replicated_GB_per_rank": 8 * 3 * n * 3 / 1e9,  # positions, gathered copy, k-d tree
+        # all N positions gathered at rebuilds, and their wrapped copy in the search (the k-d
+        # tree holds only the rank's candidates since session 8)
+        "replicated_GB_per_rank": 8 * 3 * n * 2 / 1e9,
         "matrix_GB_per_rank": 12 * nnz / p / 1e9,
     }
     if "steps_c" in m:
