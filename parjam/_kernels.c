@@ -1,23 +1,62 @@
-/* Compiled pair kernel of parjam's force evaluation (parjam/kernels.py loads it with ctypes).
+/* Compiled kernels of parjam's force evaluation and FIRE step (parjam/kernels.py loads them with
+ * ctypes; scripts/setup-env and `pip install` build them, see kernels.py).
  *
- * For the neighbour pairs (i < j, sorted by (i, j)) that touch the owned particles [lo, hi),
- * adds the contact forces to the owned particles in pair order -- so the sum on a particle does
- * not depend on how particles are split over ranks -- and returns the energy of the pairs whose
- * first particle is owned (each pair counted once over all ranks).
+ * parjam_pair_forces: for the neighbour pairs (i < j, sorted by (i, j)) that touch the owned
+ * particles [lo, hi), adds the contact forces to the owned particles in pair order -- so the sum
+ * on a particle does not depend on how particles are split over ranks -- and returns the energy
+ * of the pairs whose first particle is owned (each pair counted once over all ranks).
  * Positions need not be folded into [0, L) exactly (see the minimum image below).
- * V = (eps/alpha)(1 - r/sigma)^alpha for r < sigma, sigma = (s_i + s_j)/2.
+ * V = (eps/alpha)(1 - r/sigma)^alpha for r < sigma, sigma = (s_i + s_j)/2 (the paper's Eq. (1)).
+ *
+ * parjam_fire_step: one FIRE step fused with the force evaluation (parjam/fire.py): the
+ * velocity/position update of the owned particles, the forces at the new positions, and the
+ * partial sums that the next step's decisions need (energy, F.v, |F|^2, |v|^2, max |F_i|^2,
+ * max |v_i|^2, max displacement^2 since the neighbour list was built), which the caller reduces
+ * over the ranks in one allreduce.
  */
 #include <math.h>
 #include <stdint.h>
+
+#if defined(__GNUC__)
+#define ALWAYS_INLINE inline __attribute__((always_inline))
+#else
+#define ALWAYS_INLINE inline
+#endif
 
 static double powa(double x, double a)
 {
     return a == 1.0 ? x : (a == 2.0 ? x * x : pow(x, a));
 }
 
-double parjam_pair_forces(int64_t npairs, const int64_t *pi, const int64_t *pj, const double *pos,
-                          const double *diam, double L, int d, double alpha, double eps,
-                          int64_t lo, int64_t hi, double *force)
+/* x_j - x_i, minimum image.  Positions are kept near [0, L), so this loops at most once or
+ * twice.  Across the boundary x ~ +-L would round at ulp(L); the particle near L is shifted by
+ * L first (exact for positions in [L/2, 2L]) and the small numbers are subtracted, so overlaps
+ * of 1e-8 keep ~1e-16 absolute precision whatever L (parjam.system). */
+static ALWAYS_INLINE double separation(double xi, double xj, double L)
+{
+    double x = xj - xi;
+    if (x > 0.5 * L) {
+        double xs = xj - L;
+        while (xs - xi > 0.5 * L)
+            xs -= L;
+        x = xs - xi;
+    } else if (x < -0.5 * L) {
+        double xs = xi - L;
+        while (xj - xs < -0.5 * L)
+            xs -= L;
+        x = xj - xs;
+    }
+    return x;
+}
+
+/* Contact forces on the owned particles [lo, hi) of ``pos`` from the pairs into ``force``
+ * (zeroed first); returns the energy of the pairs whose first particle is owned.  ``d`` and
+ * ``harmonic`` (alpha = 2) are constants at the call sites in forces(), which are inlined, so
+ * the harmonic loop holds no pow and no branch on alpha, and the loops over d unroll. */
+static ALWAYS_INLINE double pair_loop(int64_t npairs, const int64_t *pi, const int64_t *pj,
+                               const double *pos, const double *diam, double L, int d,
+                               double alpha, double eps, int64_t lo, int64_t hi, double *force,
+                               const int harmonic)
 {
     double energy = 0.0;
     for (int64_t k = 0; k < (hi - lo) * d; k++)
@@ -26,23 +65,7 @@ double parjam_pair_forces(int64_t npairs, const int64_t *pi, const int64_t *pj, 
         const int64_t i = pi[p], j = pj[p];
         double dr[3], r2 = 0.0;
         for (int a = 0; a < d; a++) {
-            const double xi = pos[i * d + a], xj = pos[j * d + a];
-            double x = xj - xi;
-            /* minimum image (positions are kept near [0, L), so this loops at most once or twice).
-             * Across the boundary x ~ +-L would round at ulp(L); the particle near L is shifted by
-             * L first (exact for positions in [L/2, 2L]) and the small numbers are subtracted, so
-             * overlaps of 1e-8 keep ~1e-16 absolute precision whatever L (parjam.system). */
-            if (x > 0.5 * L) {
-                double xs = xj - L;
-                while (xs - xi > 0.5 * L)
-                    xs -= L;
-                x = xs - xi;
-            } else if (x < -0.5 * L) {
-                double xs = xi - L;
-                while (xj - xs < -0.5 * L)
-                    xs -= L;
-                x = xj - xs;
-            }
+            const double x = separation(pos[i * d + a], pos[j * d + a], L);
             dr[a] = x;
             r2 += x * x;
         }
@@ -51,16 +74,128 @@ double parjam_pair_forces(int64_t npairs, const int64_t *pi, const int64_t *pj, 
             continue;
         const double r = sqrt(r2);
         const double delta = 1.0 - r / sigma;
-        const double dv = -(eps / sigma) * powa(delta, alpha - 1.0); /* V'(r) */
-        const double c = -dv / r;                                    /* force on j = c dr */
+        /* V'(r) = -(eps/sigma) delta^(alpha-1) */
+        const double dv = -(eps / sigma) * (harmonic ? delta : powa(delta, alpha - 1.0));
+        const double c = -dv / r; /* force on j = c dr */
         if (j >= lo && j < hi)
             for (int a = 0; a < d; a++)
                 force[(j - lo) * d + a] += c * dr[a];
         if (i >= lo && i < hi) {
             for (int a = 0; a < d; a++)
                 force[(i - lo) * d + a] -= c * dr[a];
-            energy += (eps / alpha) * powa(delta, alpha);
+            energy += harmonic ? (eps / 2.0) * (delta * delta) : (eps / alpha) * powa(delta, alpha);
         }
     }
     return energy;
 }
+
+static double forces(int64_t npairs, const int64_t *pi, const int64_t *pj, const double *pos,
+                     const double *diam, double L, int d, double alpha, double eps, int64_t lo,
+                     int64_t hi, double *force)
+{
+    const int harmonic = alpha == 2.0;
+    if (d == 3 && harmonic)
+        return pair_loop(npairs, pi, pj, pos, diam, L, 3, alpha, eps, lo, hi, force, 1);
+    if (d == 2 && harmonic)
+        return pair_loop(npairs, pi, pj, pos, diam, L, 2, alpha, eps, lo, hi, force, 1);
+    if (d == 3)
+        return pair_loop(npairs, pi, pj, pos, diam, L, 3, alpha, eps, lo, hi, force, 0);
+    if (d == 2)
+        return pair_loop(npairs, pi, pj, pos, diam, L, 2, alpha, eps, lo, hi, force, 0);
+    return pair_loop(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, force, 0);
+}
+
+double parjam_pair_forces(int64_t npairs, const int64_t *pi, const int64_t *pj, const double *pos,
+                          const double *diam, double L, int d, double alpha, double eps,
+                          int64_t lo, int64_t hi, double *force)
+{
+    return forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, force);
+}
+
+/* Largest |x_k - ref_k|^2 (minimum image) over the nown particles. */
+static double max_displacement2(int64_t nown, int d, const double *x, const double *ref, double L)
+{
+    double m = 0.0;
+    for (int64_t k = 0; k < nown; k++) {
+        double s = 0.0;
+        for (int a = 0; a < d; a++) {
+            double dx = x[k * d + a] - ref[k * d + a];
+            dx -= L * rint(dx / L);
+            s += dx * dx;
+        }
+        if (s > m)
+            m = s;
+    }
+    return m;
+}
+
+enum { FIRE_UPDATE = 1, FIRE_FORCES = 2 };
+
+/* One FIRE step on the nown owned particles (x, v, f: nown x d, C order).
+ *
+ * FIRE_UPDATE (Bitzek et al., PRL 97, 170201 (2006); semi-implicit Euler as in Guenole et al.,
+ * Comput. Mater. Sci. 175, 109584 (2020)), with the scalars the caller derived from the last
+ * reduction:  if ``reset`` (P <= 0): x += back v, v = 0;  then v += dt F;  v = mix_f F + mix_v v
+ * (mix_v = 1 - a, mix_f = a |v|/|F|);  x += dt v.  When stale2 > 0 and some particle has moved
+ * by sqrt(stale2) or more since ``ref`` (the neighbour list's positions), returns 1 without
+ * computing forces: the caller rebuilds the list and calls again with FIRE_FORCES alone.
+ *
+ * FIRE_FORCES: the forces on the owned particles from the pairs over ``pos`` (the owned block is
+ * [lo, hi) of pos; on one rank pos is x itself), then sums[] = {energy, F.v, |F|^2, |v|^2,
+ * max |F_i|^2, max |v_i|^2, max displacement^2 from ref} over the owned particles. */
+int parjam_fire_step(int mode, int64_t nown, int d, double *x, double *v, double *f,
+                     const double *ref, double L, double dt, int reset, double back, double mix_v,
+                     double mix_f, double stale2, int64_t npairs, const int64_t *pi,
+                     const int64_t *pj, const double *pos, const double *diam, double alpha,
+                     double eps, int64_t lo, int64_t hi, double *sums)
+{
+    const int64_t n = nown * d;
+    if (mode & FIRE_UPDATE) {
+        for (int64_t k = 0; k < n; k++) {
+            double vk = v[k];
+            if (reset) {
+                x[k] += back * vk;
+                vk = 0.0;
+            }
+            vk += dt * f[k];
+            vk = mix_f * f[k] + mix_v * vk;
+            v[k] = vk;
+            x[k] += dt * vk;
+        }
+        if (stale2 > 0.0 && max_displacement2(nown, d, x, ref, L) >= stale2)
+            return 1;
+    }
+    if (mode & FIRE_FORCES) {
+        double e = forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f);
+        double p = 0.0, f2 = 0.0, v2 = 0.0, fm = 0.0, vm = 0.0;
+        for (int64_t k = 0; k < nown; k++) {
+            double fk = 0.0, vk = 0.0;
+            for (int a = 0; a < d; a++) {
+                const double fa = f[k * d + a], va = v[k * d + a];
+                p += fa * va;
+                fk += fa * fa;
+                vk += va * va;
+            }
+            f2 += fk;
+            v2 += vk;
+            if (fk > fm)
+                fm = fk;
+            if (vk > vm)
+                vm = vk;
+        }
+        sums[0] = e;
+        sums[1] = p;
+        sums[2] = f2;
+        sums[3] = v2;
+        sums[4] = fm;
+        sums[5] = vm;
+        sums[6] = max_displacement2(nown, d, x, ref, L);
+    }
+    return 0;
+}
+
+#ifndef PARJAM_SRC_SHA
+#define PARJAM_SRC_SHA "unknown"
+#endif
+/* SHA-256 of this file when it was compiled (parjam.kernels checks it against the source) */
+const char *parjam_src_sha = PARJAM_SRC_SHA;

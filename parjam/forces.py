@@ -8,6 +8,11 @@ just the positions of the particles those pairs touch (its own and a halo of gho
 VecScatter).  Forces on a particle are summed over its pairs in global (i, j) order, so they
 are bitwise independent of the number of ranks.  Scalars (energy, max |F|) are reduced over
 the communicator.
+
+FIRE runs on ``fire_start``/``fire_step`` (parjam.fire): one compiled call per step updates the
+velocities and positions, evaluates the forces and sums what the next step needs, and one
+allreduce of seven numbers replaces the separate dots, norms and maxima (on several ranks the
+halo fetch sits between the update and the forces, so that is two calls).
 """
 
 import numpy as np
@@ -156,6 +161,74 @@ class ForceField:
                                       self.halo_lo, self.halo_hi, self.local(f))
         return self.mpi.allreduce(e_local)
 
+    # --- the fused FIRE step (parjam.fire) ----------------------------------------------------
+    def fire_start(self, f, v):
+        """Forces at the current positions into f, and the global FIRE sums for velocities v
+        (collective; renews the neighbour list if stale).  Returns ``FireSums``."""
+        self.n_force_calls += 1
+        if self._stale(self.x.array_r.reshape(-1, self.d)):
+            self._rebuild(self.gather())
+        self._fire_call(kernels.FIRE_FORCES, f, v, 0.0, False, 0.0, 1.0, 0.0)
+        return self._sums
+
+    def fire_step(self, f, v, dt, reset, mix_v, mix_f, last):
+        """One FIRE step fused with the force evaluation (collective): if ``reset`` step half
+        back and zero v; v += dt F; v = mix_v v + mix_f F; x += dt v; then the forces at the new
+        positions into f and the global sums (``FireSums``) in ONE allreduce.  ``last`` (the
+        previous step's sums) bounds this step's displacement: on several ranks the neighbour
+        list is rebuilt when the largest displacement since the last rebuild plus that bound
+        could reach half the skin (no extra reduction); on one rank the kernel checks the
+        displacement itself.  Forces do not depend on when the list was rebuilt (only touching
+        pairs count, in (i, j) order), so both give the same trajectory."""
+        self.n_force_calls += 1
+        back = -0.5 * dt
+        if self.comm.getSize() == 1:
+            # the kernel checks the displacement after its update and stops before the forces
+            # when the list has gone stale
+            stale = self._fire_call(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, f, v, dt, reset,
+                                    back, mix_v, mix_f, stale2=(0.5 * self.skin) ** 2)
+            if stale:
+                self._rebuild(self.x.array_r.reshape(self.n, self.d))
+                self._fire_call(kernels.FIRE_FORCES, f, v, dt, reset, back, mix_v, mix_f)
+            return self._sums
+        vmax = 0.0 if reset else last.vmax
+        step = dt * (mix_v * (vmax + dt * last.fmax) + mix_f * last.fmax)
+        if reset:
+            step += 0.5 * dt * last.vmax
+        self._fire_call(kernels.FIRE_UPDATE, f, v, dt, reset, back, mix_v, mix_f)
+        if (last.disp + step) * (1.0 + 1e-6) >= 0.5 * self.skin:
+            self._rebuild(self.gather())
+        self._fire_call(kernels.FIRE_FORCES, f, v, dt, reset, back, mix_v, mix_f)
+        return self._sums
+
+    def _fire_call(self, mode, f, v, dt, reset, back, mix_v, mix_f, stale2=0.0):
+        """The kernel call; with FIRE_FORCES, the halo fetch before it and the reduction after
+        it (stores and returns the global FireSums).  With stale2 > 0 returns True when the
+        kernel found the list stale."""
+        x = self.x.array.reshape(-1, self.d)
+        va, fa = v.array.reshape(-1, self.d), f.array.reshape(-1, self.d)
+        local = np.zeros(kernels.N_SUMS)
+        pos = x
+        if mode & kernels.FIRE_FORCES and self.halo_scatter is not None:
+            pos = self._halo_positions()
+        rc = kernels.fire_step(mode, x, va, fa, self.ref_own, self.L, dt, reset, back, mix_v,
+                               mix_f, stale2, self.halo_i, self.halo_j, pos, self.halo_diam,
+                               self.alpha, self.eps, self.halo_lo, self.halo_hi, local)
+        if rc:
+            return True
+        if mode & kernels.FIRE_FORCES:
+            self._sums = FireSums(self._reduce(local))
+        return False
+
+    def _reduce(self, local):
+        """The FIRE sums over the ranks: one allreduce of the 7-number buffer (sums of the first
+        four, maxima of the rest)."""
+        if self.comm.getSize() == 1:
+            return local
+        out = np.empty_like(local)
+        self.mpi.Allreduce(local, out, op=_sum_max_op())
+        return out
+
     def max_norm(self, f):
         """max_i |F_i| over all particles (Euclidean norm per particle)."""
         fl = self.local(f)
@@ -205,3 +278,33 @@ def _max():
     from mpi4py import MPI
 
     return MPI.MAX
+
+
+class FireSums:
+    """The global sums of one fused FIRE step (from the 7-number buffer of _kernels.c)."""
+
+    __slots__ = ("energy", "power", "f2", "v2", "fmax", "vmax", "disp")
+
+    def __init__(self, s):
+        self.energy, self.power, self.f2, self.v2 = float(s[0]), float(s[1]), float(s[2]), float(s[3])
+        self.fmax, self.vmax, self.disp = (float(np.sqrt(s[4])), float(np.sqrt(s[5])),
+                                           float(np.sqrt(s[6])))
+
+
+_OP = None
+
+
+def _sum_max_op():
+    """MPI op on the FIRE buffer: sums of entries 0-3, maxima of entries 4-6 (commutative)."""
+    global _OP
+    if _OP is None:
+        from mpi4py import MPI
+
+        def combine(inbuf, inoutbuf, datatype):
+            a = np.frombuffer(inbuf, dtype=np.float64)
+            b = np.frombuffer(inoutbuf, dtype=np.float64)
+            b[:4] += a[:4]
+            np.maximum(b[4:], a[4:], out=b[4:])
+
+        _OP = MPI.Op.Create(combine, commute=True)
+    return _OP

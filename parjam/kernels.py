@@ -1,13 +1,18 @@
-"""The compiled pair-force kernel (``_kernels.c``), built on first use with the system's C
-compiler and loaded through ctypes; a numpy implementation with the same results (to round-off)
-serves when no compiler is available or ``PARJAM_KERNELS=numpy`` is set.
+"""The compiled kernels (``_kernels.c``): the pair forces and the fused FIRE step, loaded through
+ctypes.  A numpy implementation with the same results (to round-off) serves only as a fall-back,
+when no compiled library is available or ``PARJAM_KERNELS=numpy`` is set; it prints a one-line
+warning (once, on rank 0) when first used, since it is several times slower.
 
-The shared library is built once per source version into ``$PARJAM_CACHE`` (default
-``~/.cache/parjam``), under a temporary name renamed into place, so concurrent MPI ranks can race
-for it safely.
+The library is built at install time (``pip install`` / ``scripts/setup-env``: setup.py's
+extension ``parjam._kernels_lib``, next to this file).  It carries the SHA-256 of the source it
+was built from; when that is not this ``_kernels.c`` (an edited checkout) or there is none, the
+library is built once per source version into ``$PARJAM_CACHE`` (default ``~/.cache/parjam``)
+with the system's C compiler, under a temporary name renamed into place, so concurrent MPI
+ranks can race for it safely.
 """
 
 import ctypes
+import glob
 import hashlib
 import os
 import shutil
@@ -20,63 +25,124 @@ import numpy as np
 from parjam import potential
 from parjam.system import pair_separation
 
-_SRC = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_kernels.c")
+_HERE = os.path.dirname(os.path.abspath(__file__))
+_SRC = os.path.join(_HERE, "_kernels.c")
+# no -ffast-math: the summation order and IEEE semantics are part of the results
+CFLAGS = ["-O2", "-fPIC", "-fno-fast-math"]
 _lib = None
 _tried = False
+_warned = False
+_why = ""
+
+# modes of fire_step (enum in _kernels.c)
+FIRE_UPDATE = 1
+FIRE_FORCES = 2
+# fire_step's sums: energy, F.v, |F|^2, |v|^2, max|F_i|^2, max|v_i|^2, max displacement^2
+N_SUMS = 7
+
+
+def source_sha():
+    """SHA-256 (hex) of ``_kernels.c``: compiled into the library as PARJAM_SRC_SHA."""
+    return hashlib.sha256(open(_SRC, "rb").read()).hexdigest()
 
 
 def _cache_dir():
     return os.environ.get("PARJAM_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "parjam"))
 
 
-def _build():
-    src = open(_SRC, "rb").read()
-    tag = hashlib.sha256(src).hexdigest()[:16]
-    target = os.path.join(_cache_dir(), f"_kernels-{tag}.so")
-    if os.path.exists(target):
-        return target
-    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+def compile_library(target, cc=None):
+    """Compile ``_kernels.c`` into the shared library ``target`` (atomically: a temporary file
+    renamed into place).  Returns None on success, else the compiler's message."""
+    cc = cc or os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
     if cc is None:
-        return None
-    os.makedirs(_cache_dir(), exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=_cache_dir())
+        return "no C compiler (cc or gcc) found"
+    folder = os.path.dirname(os.path.abspath(target))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=folder)
     os.close(fd)
-    # no -ffast-math: the summation order and IEEE semantics are part of the results
-    cmd = [cc, "-O2", "-fPIC", "-shared", "-o", tmp, _SRC, "-lm"]
+    cmd = [cc, *CFLAGS, "-shared", f'-DPARJAM_SRC_SHA="{source_sha()}"', "-o", tmp, _SRC, "-lm"]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         os.remove(tmp)
-        print(f"parjam: warning: could not compile the force kernel ({res.stderr.strip()[:200]});"
-              " using numpy", file=sys.stderr)
-        return None
+        return res.stderr.strip()[:200] or f"{cc} failed"
     os.replace(tmp, target)
-    return target
+    return None
+
+
+def _installed():
+    """The library built at install time, if it was built from this source."""
+    for path in sorted(glob.glob(os.path.join(_HERE, "_kernels_lib*.so"))):
+        try:
+            lib = ctypes.CDLL(path)
+            sha = ctypes.c_char_p.in_dll(lib, "parjam_src_sha").value.decode()
+        except (OSError, ValueError):
+            continue
+        if sha == source_sha():
+            return lib
+    return None
+
+
+def _cached():
+    """The library built into the cache on first use (None if that fails)."""
+    global _why
+    target = os.path.join(_cache_dir(), f"_kernels-{source_sha()[:16]}.so")
+    if not os.path.exists(target):
+        err = compile_library(target)
+        if err is not None:
+            _why = f"could not compile the kernels ({err})"
+            return None
+    return ctypes.CDLL(target)
 
 
 def library():
     """The loaded kernel library, or None (numpy fallback)."""
-    global _lib, _tried
+    global _lib, _tried, _why
     if _tried:
         return _lib
     _tried = True
     if os.environ.get("PARJAM_KERNELS", "").lower() == "numpy":
+        _why = "PARJAM_KERNELS=numpy"
         return None
     try:
-        path = _build()
-    except OSError:
-        path = None
-    if path is None:
+        lib = _installed() or _cached()
+    except OSError as exc:
+        _why, lib = f"could not load the kernels ({exc})", None
+    if lib is None:
         return None
-    lib = ctypes.CDLL(path)
+    ptr = np.ctypeslib.ndpointer
+    f64, i64 = ptr(np.float64, flags="C"), ptr(np.int64, flags="C")
+    w64 = ptr(np.float64, flags="C,W")
     f = lib.parjam_pair_forces
     f.restype = ctypes.c_double
-    ptr = np.ctypeslib.ndpointer
-    f.argtypes = [ctypes.c_int64, ptr(np.int64, flags="C"), ptr(np.int64, flags="C"),
-                  ptr(np.float64, flags="C"), ptr(np.float64, flags="C"), ctypes.c_double,
-                  ctypes.c_int, ctypes.c_double, ctypes.c_double, ctypes.c_int64, ctypes.c_int64,
-                  ptr(np.float64, flags="C,W")]
+    f.argtypes = [ctypes.c_int64, i64, i64, f64, f64, ctypes.c_double, ctypes.c_int,
+                  ctypes.c_double, ctypes.c_double, ctypes.c_int64, ctypes.c_int64, w64]
+    s = lib.parjam_fire_step
+    s.restype = ctypes.c_int
+    dbl = ctypes.c_double
+    s.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int, w64, w64, w64, f64, dbl, dbl,
+                  ctypes.c_int, dbl, dbl, dbl, dbl, ctypes.c_int64, i64, i64, f64, f64, dbl, dbl,
+                  ctypes.c_int64, ctypes.c_int64, w64]
     _lib = lib
     return _lib
+
+
+def reset():
+    """Forget the loaded library (the next call looks again, e.g. after PARJAM_KERNELS changed)."""
+    global _lib, _tried, _warned, _why
+    _lib, _tried, _warned, _why = None, False, False, ""
+
+
+def _fallback():
+    """Warn once (rank 0) that the numpy kernels are in use."""
+    global _warned
+    if _warned:
+        return
+    _warned = True
+    from mpi4py import MPI
+
+    if MPI.COMM_WORLD.Get_rank() == 0:
+        print(f"parjam: warning: using the slow numpy force kernels ({_why or 'no library'})",
+              file=sys.stderr, flush=True)
 
 
 def pair_forces(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
@@ -86,6 +152,7 @@ def pair_forces(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
     if lib is not None:
         return lib.parjam_pair_forces(len(pi), pi, pj, pos, diam, L, pos.shape[1], alpha, eps,
                                       lo, hi, out)
+    _fallback()
     return _pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out)
 
 
@@ -103,3 +170,39 @@ def _pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
         w = np.concatenate([-fj[own_i, a], fj[own_j, a]])
         out[:, a] = np.bincount(idx, weights=w, minlength=hi - lo)
     return potential.energy(r[own_i], sigma[own_i], alpha, eps).sum()
+
+
+def fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi, pj, pos, diam,
+              alpha, eps, lo, hi, sums):
+    """One fused FIRE step on the owned particles (x, v, f, ref: (n_own, d) C arrays); see
+    ``parjam_fire_step`` in _kernels.c for the modes and the seven ``sums``.  Returns 1 when the
+    update found the neighbour list stale (no forces computed), else 0."""
+    lib = library()
+    if lib is not None:
+        return lib.parjam_fire_step(mode, len(x), x.shape[1], x, v, f, ref, L, dt, int(reset),
+                                    back, mix_v, mix_f, stale2, len(pi), pi, pj, pos, diam,
+                                    alpha, eps, lo, hi, sums)
+    _fallback()
+    if mode & FIRE_UPDATE:
+        if reset:
+            x += back * v
+            v[:] = 0.0
+        v += dt * f
+        v[:] = mix_f * f + mix_v * v
+        x += dt * v
+        if stale2 > 0.0 and _max_disp2(x, ref, L) >= stale2:
+            return 1
+    if mode & FIRE_FORCES:
+        e = _pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, f)
+        f2 = np.einsum("ij,ij->i", f, f)
+        v2 = np.einsum("ij,ij->i", v, v)
+        sums[:] = (e, np.vdot(f, v), f2.sum(), v2.sum(), f2.max(initial=0.0),
+                   v2.max(initial=0.0), _max_disp2(x, ref, L))
+    return 0
+
+
+def _max_disp2(x, ref, L):
+    dx = x - ref
+    dx -= L * np.rint(dx / L)
+    return np.einsum("ij,ij->i", dx, dx).max(initial=0.0)
+

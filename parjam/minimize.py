@@ -4,10 +4,11 @@ systems (more than FIRE_TAIL_DOF degrees of freedom) FIRE goes on to the toleran
 Newton is only the fall-back when FIRE does not get there: a Newton step then costs thousands of
 FIRE steps.
 
-FIRE: Bitzek et al., PRL 97, 170201 (2006), with the FIRE 2.0 half-step back-off of Guenole et
-al., Comput. Mater. Sci. 175, 109584 (2020).  Newton: Levenberg-Marquardt shift mu ~ max|F| so
-that near-zero modes are damped while the residual is large, the d global translations projected
-out of the right-hand side and of the step, and a backtracking line search on the energy.
+FIRE: parjam.fire (Bitzek et al., PRL 97, 170201 (2006); FIRE 2.0 of Guenole et al., Comput.
+Mater. Sci. 175, 109584 (2020), as an option); its names are re-exported here.  Newton:
+Levenberg-Marquardt shift mu ~ max|F| so that near-zero modes are damped while the residual is
+large, the d global translations projected out of the right-hand side and of the step, and a
+backtracking line search on the energy.
 """
 
 from dataclasses import dataclass
@@ -15,104 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from parjam import env, factor
-
-
-@dataclass
-class FireParams:
-    dt: float = 0.05
-    dt_max: float = 0.5
-    dt_min: float = 1e-4
-    n_delay: int = 5
-    f_inc: float = 1.1
-    f_dec: float = 0.5
-    a0: float = 0.1
-    f_a: float = 0.99
-    max_steps: int = 200000
-
-
-@dataclass
-class MinResult:
-    status: str  # "converged", "unjammed" or "not converged"
-    energy: float
-    fmax: float
-    fire_steps: int = 0
-    newton_steps: int = 0
-
-    @property
-    def ok(self):
-        return self.status == "converged"
-
-
-@dataclass
-class FireState:
-    """FIRE's dynamical state besides the positions: enough to continue a run exactly."""
-
-    v: np.ndarray  # velocities of all particles, (n, d)
-    dt: float
-    a: float
-    n_pos: int
-    step: int
-
-
-SNAPSHOT_EVERY = 100  # FIRE steps between offers of a snapshot (see ``fire``)
-
-
-def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snapshot=None):
-    """FIRE on ff.x until max|F| < ftol, or the energy falls below e_stop (-> "unjammed").
-
-    ``start`` (a FireState) continues an interrupted run from its velocities, time step and
-    counters.  Every SNAPSHOT_EVERY steps ``snapshot(make_state)`` is called, if given, on all
-    ranks; ``make_state()`` (collective) returns the current FireState (parjam.checkpoint)."""
-    p = params or FireParams()
-    f = ff.vec()
-    v = ff.vec()
-    v.set(0.0)
-    energy = ff.evaluate(f)
-    fmax = ff.max_norm(f)
-    dt, a, n_pos, step = p.dt, p.a0, 0, 0
-    if start is not None:
-        v.array[:] = start.v[ff.lo:ff.hi].ravel()
-        dt, a, n_pos, step = start.dt, start.a, start.n_pos, start.step
-    status = "not converged"
-
-    def make_state():
-        return FireState(np.array(ff.gather(v)), dt, a, n_pos, step)
-
-    for step in range(step + 1, p.max_steps + 1):
-        if energy < e_stop:
-            status = "unjammed"
-            break
-        if fmax < ftol:
-            status = "converged"
-            break
-        power = f.dot(v)
-        if power > 0.0:
-            n_pos += 1
-            if n_pos > p.n_delay:
-                dt = min(dt * p.f_inc, p.dt_max)
-                a *= p.f_a
-        else:
-            n_pos = 0
-            dt = max(dt * p.f_dec, p.dt_min)
-            a = p.a0
-            ff.x.axpy(-0.5 * dt, v)  # FIRE 2.0: step half back before stopping
-            v.set(0.0)
-        # semi-implicit Euler with FIRE mixing (unit masses)
-        v.axpy(dt, f)
-        vn, fn = v.norm(), f.norm()
-        if fn > 0.0:
-            v.axpby(a * vn / fn, 1.0 - a, f)
-        ff.x.axpy(dt, v)  # positions are folded back into the box at the end
-        energy = ff.evaluate(f)
-        fmax = ff.max_norm(f)
-        if progress is not None and step % 100 == 0:
-            progress(f"FIRE step {step}: E/N = {energy / ff.n:.3e}, max|F| = {fmax:.3e}")
-        if snapshot is not None and step % SNAPSHOT_EVERY == 0:
-            snapshot(make_state)
-    ff.wrap()
-    for vec in (f, v):
-        vec.destroy()
-    return MinResult(status, energy, fmax, fire_steps=step)
+from parjam.fire import SNAPSHOT_EVERY, FireParams, FireState, MinResult, fire  # noqa: F401
 
 
 # Above this many degrees of freedom Newton solves with CG + GAMG instead of a MUMPS LDL^T.

@@ -41,15 +41,17 @@ def reference(shared_tmp):
 
 @pytest.fixture
 def evaluations(monkeypatch):
-    """Counts every force evaluation of this process."""
+    """Counts every force evaluation of this process (plain, and those of the fused FIRE
+    step)."""
     count = {"n": 0}
-    real = ForceField.evaluate
+    for name in ("evaluate", "fire_start", "fire_step"):
+        real = getattr(ForceField, name)
 
-    def counting(self, f):
-        count["n"] += 1
-        return real(self, f)
+        def counting(self, *args, real=real):
+            count["n"] += 1
+            return real(self, *args)
 
-    monkeypatch.setattr(ForceField, "evaluate", counting)
+        monkeypatch.setattr(ForceField, name, counting)
     return count
 
 

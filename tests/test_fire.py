@@ -1,0 +1,160 @@
+"""The fused FIRE step (parjam.fire, parjam_fire_step in _kernels.c) against the step-by-step
+PETSc FIRE it replaced, FIRE 2.0's rules, and the numpy fallback of the kernels."""
+
+import numpy as np
+import pytest
+
+from parjam import env, kernels
+from parjam.fire import FireParams, control, fire, fire_unfused
+from parjam.forces import ForceField
+from parjam.packing import random_packing
+from parjam.system import neighbour_pairs
+
+
+def _run(comm, pack, fn, params):
+    ff = ForceField(comm, pack.diam, pack.L, pack.d, pack.alpha)
+    ff.set_positions(pack.pos)
+    res = fn(ff, 0.0, params=params)
+    pos = np.array(ff.gather())
+    rebuilds = ff.n_rebuilds  # collective: the same on every rank
+    ff.destroy()
+    return res, pos, rebuilds
+
+
+def _dist(a, b, L):
+    d = a - b
+    return np.abs(d - L * np.rint(d / L)).max()
+
+
+@pytest.mark.parametrize("d, alpha, variant", [(3, 2.0, "fire"), (2, 2.5, "fire"),
+                                               (3, 2.0, "fire2"), (2, 2.0, "fire2")])
+def test_fused_step_follows_the_unfused_fire(world, d, alpha, variant):
+    """250 fused steps from a random (overlapping, far from balance) state land where the
+    step-by-step PETSc FIRE lands, to round-off, on one rank and on all ranks; a fused run on
+    all ranks equals one on one rank as strictly.  Both pass through many neighbour rebuilds and
+    uphill resets, so a wrong mixing, reset or stale list would show at O(skin)."""
+    PETSc = env.petsc()
+    pack = random_packing(d, 300, 0.9 if d == 2 else 0.7, alpha, "bi", 1.4,
+                          np.random.default_rng(7))
+    params = FireParams(max_steps=250) if variant == "fire" else FireParams.fire2(max_steps=250)
+    fused_self, pos_self, reb_self = _run(PETSc.COMM_SELF, pack, fire, params)
+    fused_world, pos_world, reb_world = _run(world, pack, fire, params)
+    plain, pos_plain, reb_plain = _run(world, pack, fire_unfused, params)
+    assert reb_plain > 5 and reb_self == reb_plain  # one rank: the same rebuild rule as before
+    assert reb_world >= reb_plain  # several ranks: rebuilt on a bound, perhaps a step early
+    assert fused_self.fire_steps == plain.fire_steps == 250
+    scale = pack.diam.min()
+    assert _dist(pos_self, pos_plain, pack.L) < 1e-9 * scale
+    assert _dist(pos_world, pos_self, pack.L) < 1e-9 * scale
+    assert fused_self.energy == pytest.approx(plain.energy, rel=1e-9)
+    assert fused_world.fmax == pytest.approx(fused_self.fmax, rel=1e-6)
+    # and the run moved far: the comparisons above are not of a state that stayed put
+    assert _dist(pos_self, pack.pos, pack.L) > 2 * 0.2 * pack.diam.min()  # > 2 skins
+
+
+def test_fused_step_is_one_semi_implicit_euler_step_with_mixing(world):
+    """One fused step against the FIRE update written out in numpy (dense reference), for an
+    uphill reset and a downhill step, with the forces at the new positions."""
+    PETSc = env.petsc()
+    pack = random_packing(3, 200, 0.68, 2.0, "bi", 1.4, np.random.default_rng(3))
+    rng = np.random.default_rng(1)
+    v0 = 1e-3 * rng.standard_normal(pack.pos.shape)
+    ref = ForceField(PETSc.COMM_SELF, pack.diam, pack.L, 3, 2.0)
+    ref.set_positions(pack.pos)
+    fref = ref.vec()
+    ref.evaluate(fref)
+    f0 = np.array(ref.local(fref))
+    for reset in (False, True):
+        dt, mix_v, mix_f = 0.07, 0.9, 0.3
+        ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
+        ff.set_positions(pack.pos)
+        f, v = ff.vec(), ff.vec()
+        v.array[:] = v0[ff.lo:ff.hi].ravel()
+        s0 = ff.fire_start(f, v)
+        assert s0.power == pytest.approx(np.vdot(f0, v0), rel=1e-10)
+        assert s0.f2 == pytest.approx(np.vdot(f0, f0), rel=1e-12)
+        assert s0.fmax == pytest.approx(np.sqrt((f0**2).sum(1)).max(), rel=1e-14)
+        assert s0.vmax == pytest.approx(np.sqrt((v0**2).sum(1)).max(), rel=1e-14)
+        s = ff.fire_step(f, v, dt, reset, mix_v, mix_f, s0)
+        x, vv = pack.pos.copy(), v0.copy()
+        if reset:
+            x -= 0.5 * dt * vv
+            vv[:] = 0.0
+        vv = mix_f * f0 + mix_v * (vv + dt * f0)
+        x += dt * vv
+        np.testing.assert_allclose(ff.gather(v), vv, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(ff.gather(), x, rtol=0, atol=1e-13)
+        ref.set_positions(x)
+        e1 = ref.evaluate(fref)
+        np.testing.assert_allclose(ff.gather(f), ref.local(fref), rtol=0,
+                                   atol=1e-13 * np.abs(f0).max())
+        assert s.energy == pytest.approx(e1, rel=1e-12)
+        assert s.disp == pytest.approx(np.sqrt(((x - pack.pos) ** 2).sum(1)).max(), rel=1e-9)
+        for vec in (f, v):
+            vec.destroy()
+        ff.destroy()
+    fref.destroy()
+    ref.destroy()
+
+
+def test_fire2_rules_initial_delay_and_dt_min():
+    """FIRE's decisions (parjam.fire.control): downhill growth after n_delay steps, and uphill
+    plain FIRE halves dt and resets a at once, FIRE 2.0 not during its initial delay, and never
+    below dt_min (where plain FIRE clamps to it)."""
+    plain, f2 = FireParams(), FireParams.fire2(dt=0.1)
+    assert (f2.dt_max, f2.dt_min, f2.n_delay, f2.a0) == (1.0, 0.002, 20, 0.25)
+    # downhill: nothing changes during the delay, then dt * f_inc and a * f_a
+    reset, dt, a, n = control(f2, 1.0, 30, 0.1, 0.2, 20)
+    assert (reset, n) == (False, 21) and dt == pytest.approx(0.11) and a == pytest.approx(0.198)
+    assert control(f2, 1.0, 30, 0.1, 0.2, 3) == (False, 0.1, 0.2, 4)
+    assert control(f2, 1.0, 30, 0.99, 0.2, 30)[1] == 1.0  # capped at dt_max
+    # uphill inside the initial delay: FIRE 2.0 keeps dt and a, plain FIRE does not
+    assert control(f2, -1.0, 5, 0.1, 0.2, 7) == (True, 0.1, 0.2, 0)
+    assert control(plain, -1.0, 5, 0.1, 0.05, 7) == (True, 0.05, 0.1, 0)
+    assert control(f2, 0.0, 25, 0.1, 0.2, 7) == (True, 0.05, 0.25, 0)  # P = 0 counts as uphill
+    # dt_min: FIRE 2.0 skips a shrink below it, plain FIRE clamps
+    assert control(f2, -1.0, 25, 0.003, 0.2, 0) == (True, 0.003, 0.25, 0)
+    assert control(plain, -1.0, 25, 1.5e-4, 0.2, 0) == (True, 1e-4, 0.1, 0)
+
+
+def test_numpy_fallback_warns_once_and_gives_the_same_forces(monkeypatch, capsys):
+    """With PARJAM_KERNELS=numpy the kernels fall back to numpy, say so once on stderr, and the
+    forces, energy and fused step agree with the compiled ones to round-off."""
+    if kernels.library() is None:
+        pytest.fail("the compiled kernels are not available (a C compiler is part of the setup)")
+    pack = random_packing(3, 300, 0.7, 2.5, "poly", 1.3, np.random.default_rng(8))
+    pairs = neighbour_pairs(pack.pos, pack.L, pack.diam.max() * 1.2)
+    pi, pj = np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1])
+    v0 = 1e-2 * np.random.default_rng(2).standard_normal(pack.pos.shape)
+
+    def compute():
+        out = np.zeros_like(pack.pos)
+        e = kernels.pair_forces(pi, pj, pack.pos, pack.diam, pack.L, 2.5, 1.0, 0, pack.n, out)
+        x, v, f, sums = pack.pos.copy(), v0.copy(), out.copy(), np.zeros(kernels.N_SUMS)
+        kernels.fire_step(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, x, v, f, pack.pos, pack.L,
+                          0.05, False, -0.025, 0.9, 0.2, 0.0, pi, pj, x, pack.diam, 2.5, 1.0,
+                          0, pack.n, sums)
+        return e, out, x, f, sums
+
+    compiled = compute()
+    assert "numpy" not in capsys.readouterr().err
+    monkeypatch.setenv("PARJAM_KERNELS", "numpy")
+    kernels.reset()
+    try:
+        assert kernels.library() is None
+        fallback = compute()
+        fallback_again = compute()
+        err = capsys.readouterr().err
+    finally:
+        monkeypatch.delenv("PARJAM_KERNELS")
+        kernels.reset()
+    from mpi4py import MPI
+
+    if MPI.COMM_WORLD.Get_rank() == 0:  # one line, once, on rank 0 only
+        assert err.count("warning") == 1 and "numpy" in err and len(err.strip().splitlines()) == 1
+    else:
+        assert err == ""
+    assert kernels.library() is not None
+    for c, n, m in zip(compiled, fallback, fallback_again):
+        np.testing.assert_allclose(c, n, rtol=1e-12, atol=1e-15 * np.abs(n).max())
+        np.testing.assert_array_equal(n, m)
