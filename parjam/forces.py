@@ -18,6 +18,7 @@ halo fetch sits between the update and the forces, so that is two calls).
 import numpy as np
 
 from parjam import env, hessian, kernels
+from parjam.logevents import ALLREDUCE, ASSEMBLY, FORCE, HALO, REBUILD, event
 from parjam.system import min_image, neighbour_pairs_touching, pair_geometry, wrap
 
 
@@ -93,13 +94,14 @@ class ForceField:
 
     def _rebuild(self, pos):
         """Verlet list at the full positions ``pos`` (collective), and the halo for it."""
-        self.pairs = neighbour_pairs_touching(pos, self.L, self.diam.max() + self.skin,
-                                              self.lo, self.hi)
-        self.pairs_i = np.ascontiguousarray(self.pairs[:, 0])
-        self.pairs_j = np.ascontiguousarray(self.pairs[:, 1])
-        self.ref_own = np.array(pos[self.lo:self.hi])
-        self.n_rebuilds += 1
-        self._build_halo()
+        with event(REBUILD):
+            self.pairs = neighbour_pairs_touching(pos, self.L, self.diam.max() + self.skin,
+                                                  self.lo, self.hi)
+            self.pairs_i = np.ascontiguousarray(self.pairs[:, 0])
+            self.pairs_j = np.ascontiguousarray(self.pairs[:, 1])
+            self.ref_own = np.array(pos[self.lo:self.hi])
+            self.n_rebuilds += 1
+            self._build_halo()
 
     def _build_halo(self):
         """The particles this rank's pairs touch, sorted (its own form the contiguous block
@@ -132,8 +134,9 @@ class ForceField:
         if self.halo_scatter is None:
             return self.x.array_r.reshape(self.n, self.d)
         PETSc = env.petsc()
-        self.halo_scatter.scatter(self.x, self.halo_x, PETSc.InsertMode.INSERT,
-                                  PETSc.ScatterMode.FORWARD)
+        with event(HALO):
+            self.halo_scatter.scatter(self.x, self.halo_x, PETSc.InsertMode.INSERT,
+                                      PETSc.ScatterMode.FORWARD)
         return self.halo_x.array_r.reshape(-1, self.d)
 
     def renew_neighbours(self):
@@ -156,9 +159,11 @@ class ForceField:
         self.n_force_calls += 1
         if self._stale(self.x.array_r.reshape(-1, self.d)):
             self._rebuild(self.gather())
-        e_local = kernels.pair_forces(self.halo_i, self.halo_j, self._halo_positions(),
-                                      self.halo_diam, self.L, self.alpha, self.eps,
-                                      self.halo_lo, self.halo_hi, self.local(f))
+        pos = self._halo_positions()
+        with event(FORCE):
+            e_local = kernels.pair_forces(self.halo_i, self.halo_j, pos, self.halo_diam, self.L,
+                                          self.alpha, self.eps, self.halo_lo, self.halo_hi,
+                                          self.local(f))
         return self.mpi.allreduce(e_local)
 
     # --- the fused FIRE step (parjam.fire) ----------------------------------------------------
@@ -211,9 +216,11 @@ class ForceField:
         pos = x
         if mode & kernels.FIRE_FORCES and self.halo_scatter is not None:
             pos = self._halo_positions()
-        rc = kernels.fire_step(mode, x, va, fa, self.ref_own, self.L, dt, reset, back, mix_v,
-                               mix_f, stale2, self.halo_i, self.halo_j, pos, self.halo_diam,
-                               self.alpha, self.eps, self.halo_lo, self.halo_hi, local)
+        with event(FORCE):
+            rc = kernels.fire_step(mode, x, va, fa, self.ref_own, self.L, dt, reset, back,
+                                   mix_v, mix_f, stale2, self.halo_i, self.halo_j, pos,
+                                   self.halo_diam, self.alpha, self.eps, self.halo_lo,
+                                   self.halo_hi, local)
         if rc:
             return True
         if mode & kernels.FIRE_FORCES:
@@ -226,7 +233,8 @@ class ForceField:
         if self.comm.getSize() == 1:
             return local
         out = np.empty_like(local)
-        self.mpi.Allreduce(local, out, op=_sum_max_op())
+        with event(ALLREDUCE):
+            self.mpi.Allreduce(local, out, op=_sum_max_op())
         return out
 
     def max_norm(self, f):
@@ -244,6 +252,10 @@ class ForceField:
         """
         pos = self.gather()
         self._update_pairs(pos)
+        with event(ASSEMBLY):
+            return self._assemble_hessian(pos, shift, kind)
+
+    def _assemble_hessian(self, pos, shift, kind):
         rij, r, sigma = pair_geometry(pos, self.L, self.diam, self.pairs)
         touch = r < sigma
         blocks = np.zeros((len(r), self.d, self.d))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from parjam import env, factor
+from parjam.logevents import FACTOR, event
 from parjam.fire import SNAPSHOT_EVERY, FireParams, FireState, MinResult, fire  # noqa: F401
 
 
@@ -52,7 +53,8 @@ def _factor(ff, mu):
     """Factorise H + mu I (kept on ff); returns its number of negative pivots (None: unknown)."""
     ksp = _linear_solver(ff, ff.hessian(shift=mu))
     factor.exact_inertia(ksp.getPC())
-    ksp.setUp()
+    with event(FACTOR):
+        ksp.setUp()
     return factor.negative_pivots(ksp.getPC())
 
 

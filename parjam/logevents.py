@@ -1,0 +1,34 @@
+"""PETSc log events around the packing engine's hot spots, so that ``-log_view`` shows where a
+packing spends its time (next to the stages of parjam.packing.log_stage):
+
+  parjam: force kernel      the compiled pair kernel / fused FIRE step (parjam.kernels)
+  parjam: FIRE allreduce    the one reduction of a fused FIRE step
+  parjam: nbr rebuild       a Verlet-list rebuild (gather of positions, search, halo set-up)
+  parjam: halo exchange     the scatter of the halo positions before a force evaluation
+  parjam: Newton assembly   the Hessian's assembly for a Newton step
+  parjam: Newton factor     the factorisation (or preconditioner set-up) of a Newton step
+
+All events are registered together, in this order, the first time one is used, so every rank
+numbers them alike.
+"""
+
+from parjam import env
+
+FORCE = "parjam: force kernel"
+ALLREDUCE = "parjam: FIRE allreduce"
+REBUILD = "parjam: nbr rebuild"
+HALO = "parjam: halo exchange"
+ASSEMBLY = "parjam: Newton assembly"
+FACTOR = "parjam: Newton factor"
+NAMES = (FORCE, ALLREDUCE, REBUILD, HALO, ASSEMBLY, FACTOR)
+
+_events = {}
+
+
+def event(name):
+    """The PETSc.Log.Event ``name`` (one of NAMES): use as ``with event(FORCE): ...``."""
+    if not _events:
+        PETSc = env.petsc()
+        for n in NAMES:
+            _events[n] = PETSc.Log.Event(n)
+    return _events[name]
