@@ -61,7 +61,11 @@ def compile_library(target, cc=None):
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=folder)
     os.close(fd)
     cmd = [cc, *CFLAGS, "-shared", f'-DPARJAM_SRC_SHA="{source_sha()}"', "-o", tmp, _SRC, "-lm"]
-    res = subprocess.run(cmd, capture_output=True, text=True)
+    try:
+        res = subprocess.run(cmd, capture_output=True, text=True)
+    except OSError as exc:
+        os.remove(tmp)
+        return str(exc)
     if res.returncode != 0:
         os.remove(tmp)
         return res.stderr.strip()[:200] or f"{cc} failed"

@@ -158,3 +158,21 @@ def test_numpy_fallback_warns_once_and_gives_the_same_forces(monkeypatch, capsys
     for c, n, m in zip(compiled, fallback, fallback_again):
         np.testing.assert_allclose(c, n, rtol=1e-12, atol=1e-15 * np.abs(n).max())
         np.testing.assert_array_equal(n, m)
+
+
+def test_library_is_built_from_this_source(tmp_path):
+    """The compiled library (built at install time by setup.py, or on first use into the cache)
+    carries the SHA-256 of the _kernels.c it was built from; the one in use matches the source,
+    and compile_library makes one that does."""
+    import ctypes
+
+    lib = kernels.library()
+    if lib is None:
+        pytest.fail("the compiled kernels are not available (a C compiler is part of the setup)")
+    sha = kernels.source_sha()
+    assert ctypes.c_char_p.in_dll(lib, "parjam_src_sha").value.decode() == sha
+    target = tmp_path / "k.so"
+    assert kernels.compile_library(str(target)) is None
+    built = ctypes.CDLL(str(target))
+    assert ctypes.c_char_p.in_dll(built, "parjam_src_sha").value.decode() == sha
+    assert kernels.compile_library(str(tmp_path / "x.so"), cc="/nonexistent/cc") is not None
