@@ -199,3 +199,72 @@ int parjam_fire_step(int mode, int64_t nown, int d, double *x, double *v, double
 #endif
 /* SHA-256 of this file when it was compiled (parjam.kernels checks it against the source) */
 const char *parjam_src_sha = PARJAM_SRC_SHA;
+
+/* Neighbour search by linked cells (parjam.system.cell_pairs_touching): the pairs (i, j) with
+ * |x_j - x_i| <= cutoff (minimum image) and i or j in [lo, hi), each once, unsorted, as two
+ * index arrays of capacity ``cap``.  Positions are folded into [0, L); the box holds nc >= 3
+ * cells of edge >= cutoff per direction; ``head``/``next`` are scratch (nc^d and n entries).
+ * Returns the number of pairs, or -(number needed) when cap is too small (nothing usable). */
+int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double cutoff, int nc,
+                          int64_t lo, int64_t hi, int64_t *head, int64_t *next, int64_t cap,
+                          int64_t *pi, int64_t *pj)
+{
+    int64_t ncells = 1;
+    for (int a = 0; a < d; a++)
+        ncells *= nc;
+    for (int64_t c = 0; c < ncells; c++)
+        head[c] = -1;
+    const double scale = nc / L;
+    for (int64_t k = n - 1; k >= 0; k--) {
+        int64_t c = 0;
+        for (int a = 0; a < d; a++) {
+            int64_t m = (int64_t)(pos[k * d + a] * scale);
+            if (m >= nc)
+                m = nc - 1;
+            if (m < 0)
+                m = 0;
+            c = c * nc + m;
+        }
+        next[k] = head[c];
+        head[c] = k;
+    }
+    const double cut2 = cutoff * cutoff;
+    const int span2 = d == 3 ? 3 : 1;
+    int64_t count = 0;
+    for (int64_t i = lo; i < hi; i++) {
+        int m[3] = {0, 0, 0};
+        for (int a = 0; a < d; a++) {
+            int64_t q = (int64_t)(pos[i * d + a] * scale);
+            m[a] = (int)(q >= nc ? nc - 1 : (q < 0 ? 0 : q));
+        }
+        for (int o0 = 0; o0 < 3; o0++)
+            for (int o1 = 0; o1 < 3; o1++)
+                for (int o2 = 0; o2 < span2; o2++) {
+                    int cc[3] = {m[0] + o0 - 1, m[1] + o1 - 1, d == 3 ? m[2] + o2 - 1 : 0};
+                    int64_t c = 0;
+                    for (int a = 0; a < d; a++)
+                        c = c * nc + ((cc[a] + nc) % nc);
+                    for (int64_t j = head[c]; j >= 0; j = next[j]) {
+                        if (j == i || (j >= lo && j < hi && j < i))
+                            continue; /* each owned-owned pair once, from its smaller index */
+                        double r2 = 0.0;
+                        for (int a = 0; a < d; a++) {
+                            double x = pos[j * d + a] - pos[i * d + a];
+                            if (x > 0.5 * L) /* folded positions: one image at most */
+                                x -= L;
+                            else if (x < -0.5 * L)
+                                x += L;
+                            r2 += x * x;
+                        }
+                        if (r2 > cut2)
+                            continue;
+                        if (count < cap) {
+                            pi[count] = i < j ? i : j;
+                            pj[count] = i < j ? j : i;
+                        }
+                        count++;
+                    }
+                }
+    }
+    return count <= cap ? count : -count;
+}

@@ -2,17 +2,13 @@
 
 Each rank owns a contiguous range of particles (PETSc's split, block size d).  Positions are
 gathered to every rank (VecScatter to all) only when the Verlet list is rebuilt; each rank then
-searches the pairs that touch its particles (a k-d tree of its block and the shell around it,
-not of all N) and computes the forces on them only.  Between rebuilds a force evaluation fetches
+searches the pairs that touch its particles (linked cells in compiled code, kernels.cell_pairs;
+in a box of fewer than 3 cells a side a k-d tree of its block and the shell around it) and
+computes the forces on them only.  Between rebuilds a force evaluation fetches
 just the positions of the particles those pairs touch (its own and a halo of ghosts, one
 VecScatter).  Forces on a particle are summed over its pairs in global (i, j) order, so they
 are bitwise independent of the number of ranks.  Scalars (energy, max |F|) are reduced over
 the communicator.
-
-FIRE runs on ``fire_start``/``fire_step`` (parjam.fire): one compiled call per step updates the
-velocities and positions, evaluates the forces and sums what the next step needs, and one
-allreduce of seven numbers replaces the separate dots, norms and maxima (on several ranks the
-halo fetch sits between the update and the forces, so that is two calls).
 """
 
 import numpy as np
@@ -95,8 +91,12 @@ class ForceField:
     def _rebuild(self, pos):
         """Verlet list at the full positions ``pos`` (collective), and the halo for it."""
         with event(REBUILD):
-            self.pairs = neighbour_pairs_touching(pos, self.L, self.diam.max() + self.skin,
-                                                  self.lo, self.hi)
+            cut = self.diam.max() + self.skin
+            # linked cells in compiled code; the k-d tree when the box holds < 3 cells a side
+            self.pairs = kernels.cell_pairs(wrap(np.asarray(pos), self.L), self.L, cut,
+                                            self.lo, self.hi)
+            if self.pairs is None:
+                self.pairs = neighbour_pairs_touching(pos, self.L, cut, self.lo, self.hi)
             self.pairs_i = np.ascontiguousarray(self.pairs[:, 0])
             self.pairs_j = np.ascontiguousarray(self.pairs[:, 1])
             self.ref_own = np.array(pos[self.lo:self.hi])

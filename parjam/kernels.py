@@ -126,6 +126,12 @@ def library():
     s.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int, w64, w64, w64, f64, dbl, dbl,
                   ctypes.c_int, dbl, dbl, dbl, dbl, ctypes.c_int64, i64, i64, f64, f64, dbl, dbl,
                   ctypes.c_int64, ctypes.c_int64, w64]
+    c = lib.parjam_cell_pairs
+    c.restype = ctypes.c_int64
+    c.argtypes = [ctypes.c_int64, ctypes.c_int, f64, ctypes.c_double, ctypes.c_double,
+                  ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ptr(np.int64, flags="C,W"),
+                  ptr(np.int64, flags="C,W"), ctypes.c_int64, ptr(np.int64, flags="C,W"),
+                  ptr(np.int64, flags="C,W")]
     _lib = lib
     return _lib
 
@@ -210,3 +216,26 @@ def _max_disp2(x, ref, L):
     dx -= L * np.rint(dx / L)
     return np.einsum("ij,ij->i", dx, dx).max(initial=0.0)
 
+
+def cell_pairs(pos, L, cutoff, lo, hi):
+    """The pairs i < j with |x_j - x_i| <= cutoff (minimum image) and i or j in [lo, hi),
+    sorted by (i, j), from a linked-cell search in compiled code over positions ``pos`` folded
+    into [0, L) (all n, (n, d)).  None when there is no compiled library or the box holds fewer
+    than 3 cells of edge >= cutoff per direction (then parjam.system's k-d tree serves)."""
+    lib = library()
+    n, d = pos.shape
+    nc = int(L // cutoff) if cutoff > 0 else 0
+    if lib is None or nc < 3 or d not in (2, 3) or nc ** d > 8 * n + 1000:
+        return None
+    pos = np.ascontiguousarray(pos, dtype=np.float64)
+    head = np.empty(nc ** d, dtype=np.int64)
+    nxt = np.empty(n, dtype=np.int64)
+    cap = 40 * max(hi - lo, 1) + 1024
+    while True:
+        pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
+        got = lib.parjam_cell_pairs(n, d, pos, L, cutoff, nc, lo, hi, head, nxt, cap, pi, pj)
+        if got >= 0:
+            break
+        cap = -got
+    key = np.sort(pi[:got] * n + pj[:got])
+    return np.stack([key // n, key % n], axis=1)
