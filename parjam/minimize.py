@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from parjam import env, factor
+from parjam import fire as fire_mod
 from parjam.logevents import FACTOR, event
 from parjam.fire import SNAPSHOT_EVERY, FireParams, FireState, MinResult, fire  # noqa: F401
 
@@ -185,7 +186,7 @@ def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_
     (collective) returns a MinimiseState, from which ``resume`` continues an interrupted call
     with the same FIRE trajectory (parjam.checkpoint).
     """
-    params = fire_params or FireParams()
+    params = fire_params or fire_mod.params_for()
     total = MinResult("not converged", np.nan, np.nan)
     if ff.n * ff.d > FIRE_TAIL_DOF:
         fire_rel = 0.0

@@ -65,8 +65,12 @@ class Recorder:
         self.mod.fire, self.mod.newton, self.mod.minimise = self.orig
 
 
-def run_one(n, seed, dphi, phi_start, dim=3, dispersity="mono", tail_dof=None):
+def run_one(n, seed, dphi, phi_start, dim=3, dispersity="mono", tail_dof=None, variant=None):
     from parjam import env, minimize
+    from parjam import fire as fire_mod
+
+    if variant is not None:  # A/B of the FIRE variants (parjam.fire.DEFAULT_VARIANT)
+        fire_mod.DEFAULT_VARIANT = variant
 
     PETSc = env.petsc()
     from parjam.ensemble import member_rng
@@ -89,6 +93,7 @@ def run_one(n, seed, dphi, phi_start, dim=3, dispersity="mono", tail_dof=None):
             jam.destroy()
     return {"n": n, "seed": seed, "dphi": dphi, "phi_start": phi_start, "phi_c": phi_c,
             "dim": dim, "dispersity": dispersity, "fire_tail_dof": minimize.FIRE_TAIL_DOF,
+            "variant": fire_mod.DEFAULT_VARIANT,
             "fire": fire, "newton": newton, "rebuilds": rebuilds, "force_calls": force_calls,
             "t": time.perf_counter() - t0, "calls": rec.calls}
 
@@ -139,6 +144,8 @@ def main():
                     help="mono or bi (2D needs bi: mono crystallises)")
     ap.add_argument("--fire-tail-dof", type=int, default=None,
                     help="override minimize.FIRE_TAIL_DOF (e.g. 10**9: Newton's tail at every N)")
+    ap.add_argument("--fire", default=None, choices=("fire", "fire2"),
+                    help="FIRE variant (default: parjam.fire.DEFAULT_VARIANT)")
     ap.add_argument("--json", default=DEFAULT_JSON)
     ap.add_argument("--report", action="store_true", help="only summarise --json")
     ap.add_argument("--extrapolate", type=int, nargs="*", default=[100000])
@@ -149,9 +156,10 @@ def main():
         for n in a.n:
             for seed in a.seeds:
                 rec = run_one(n, seed, a.dphi, a.phi_start, a.dim, a.dispersity,
-                              a.fire_tail_dof)
-                print(f"N = {n} seed {seed}: {rec['fire']} FIRE steps, {rec['newton']} Newton "
-                      f"steps, {rec['t']:.1f} s, phi_c = {rec['phi_c']:.8f}", flush=True)
+                              a.fire_tail_dof, a.fire)
+                print(f"N = {n} seed {seed} {rec['variant']}: {rec['fire']} FIRE steps, "
+                      f"{rec['newton']} Newton steps, {rec['t']:.1f} s, "
+                      f"phi_c = {rec['phi_c']:.8f}", flush=True)
                 with open(a.json, "a") as fh:
                     fh.write(json.dumps(rec) + "\n")
         return
