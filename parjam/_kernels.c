@@ -120,7 +120,8 @@ static double max_displacement2(int64_t nown, int d, const double *x, const doub
         double s = 0.0;
         for (int a = 0; a < d; a++) {
             double dx = x[k * d + a] - ref[k * d + a];
-            dx -= L * rint(dx / L);
+            if (dx > 0.5 * L || dx < -0.5 * L) /* rare: only after positions were folded */
+                dx -= L * rint(dx / L);
             s += dx * dx;
         }
         if (s > m)
