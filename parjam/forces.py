@@ -41,6 +41,8 @@ class ForceField:
         self._hess_pairs = None
         self.newton_ksp = None  # its factorisation, kept by minimize.newton
         self.halo_scatter = self.halo_x = None  # see _build_halo
+        self._fire_local = np.zeros(kernels.N_SUMS)  # the fused step's sums on this rank
+        self._fire_key = self._fire_kernel = None  # the kernel bound to its arrays
 
     def set_box(self, L):
         self.L = float(L)
@@ -171,6 +173,7 @@ class ForceField:
         """Forces at the current positions into f, and the global FIRE sums for velocities v
         (collective; renews the neighbour list if stale).  Returns ``FireSums``."""
         self.n_force_calls += 1
+        self._fire_key = None  # new Vecs may sit where destroyed ones were
         if self._stale(self.x.array_r.reshape(-1, self.d)):
             self._rebuild(self.gather())
         self._fire_call(kernels.FIRE_FORCES, f, v, 0.0, False, 0.0, 1.0, 0.0)
@@ -210,21 +213,23 @@ class ForceField:
         """The kernel call; with FIRE_FORCES, the halo fetch before it and the reduction after
         it (stores and returns the global FireSums).  With stale2 > 0 returns True when the
         kernel found the list stale."""
-        x = self.x.array.reshape(-1, self.d)
-        va, fa = v.array.reshape(-1, self.d), f.array.reshape(-1, self.d)
-        local = np.zeros(kernels.N_SUMS)
-        pos = x
+        key = (f.handle, v.handle, self.n_rebuilds)
+        if self._fire_key != key:  # a new list or new Vecs: bind the kernel to their arrays
+            x = self.x.array.reshape(-1, self.d)
+            pos = x if self.halo_scatter is None else self.halo_x.array_r.reshape(-1, self.d)
+            self._fire_kernel = kernels.FireKernel(
+                x, v.array.reshape(-1, self.d), f.array.reshape(-1, self.d), self.ref_own,
+                self.halo_i, self.halo_j, pos, self.halo_diam, self._fire_local)
+            self._fire_key = key
         if mode & kernels.FIRE_FORCES and self.halo_scatter is not None:
-            pos = self._halo_positions()
+            self._halo_positions()  # into the halo Vec the kernel reads
         with event(FORCE):
-            rc = kernels.fire_step(mode, x, va, fa, self.ref_own, self.L, dt, reset, back,
-                                   mix_v, mix_f, stale2, self.halo_i, self.halo_j, pos,
-                                   self.halo_diam, self.alpha, self.eps, self.halo_lo,
-                                   self.halo_hi, local)
+            rc = self._fire_kernel(mode, self.L, dt, reset, back, mix_v, mix_f, stale2,
+                                   self.alpha, self.eps, self.halo_lo, self.halo_hi)
         if rc:
             return True
         if mode & kernels.FIRE_FORCES:
-            self._sums = FireSums(self._reduce(local))
+            self._sums = FireSums(self._reduce(self._fire_local))
         return False
 
     def _reduce(self, local):
