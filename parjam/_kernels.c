@@ -202,13 +202,14 @@ int parjam_fire_step(int mode, int64_t nown, int d, double *x, double *v, double
 const char *parjam_src_sha = PARJAM_SRC_SHA;
 
 /* Neighbour search by linked cells (parjam.system.cell_pairs_touching): the pairs (i, j) with
- * |x_j - x_i| <= cutoff (minimum image) and i or j in [lo, hi), each once, unsorted, as two
- * index arrays of capacity ``cap``.  Positions are folded into [0, L); the box holds nc >= 3
+ * |x_j - x_i| <= cutoff (minimum image) and i or j in [lo, hi), each once, as two index arrays
+ * of capacity ``cap``; in (i, j) order, *sorted = 1, unless some pair's first particle is not
+ * owned (a rank's ghost), *sorted = 0.  Positions are folded into [0, L); the box holds nc >= 3
  * cells of edge >= cutoff per direction; ``head``/``next`` are scratch (nc^d and n entries).
  * Returns the number of pairs, or -(number needed) when cap is too small (nothing usable). */
 int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double cutoff, int nc,
                           int64_t lo, int64_t hi, int64_t *head, int64_t *next, int64_t cap,
-                          int64_t *pi, int64_t *pj)
+                          int64_t *pi, int64_t *pj, int *sorted)
 {
     int64_t ncells = 1;
     for (int a = 0; a < d; a++)
@@ -232,7 +233,9 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
     const double cut2 = cutoff * cutoff;
     const int span2 = d == 3 ? 3 : 1;
     int64_t count = 0;
+    int64_t unordered = 0; /* pairs (j, i) with j < i not owned: then the caller sorts */
     for (int64_t i = lo; i < hi; i++) {
+        const int64_t first = count;
         int m[3] = {0, 0, 0};
         for (int a = 0; a < d; a++) {
             int64_t q = (int64_t)(pos[i * d + a] * scale);
@@ -263,9 +266,23 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
                             pi[count] = i < j ? i : j;
                             pj[count] = i < j ? j : i;
                         }
+                        unordered += j < i;
                         count++;
                     }
                 }
+        /* the row of i in ascending j (insertion sort of a few entries): with no unordered
+         * pair the whole list comes out in (i, j) order */
+        if (count <= cap && !unordered)
+            for (int64_t p = first + 1; p < count; p++) {
+                const int64_t key = pj[p];
+                int64_t q = p - 1;
+                while (q >= first && pj[q] > key) {
+                    pj[q + 1] = pj[q];
+                    q--;
+                }
+                pj[q + 1] = key;
+            }
     }
+    *sorted = !unordered;
     return count <= cap ? count : -count;
 }

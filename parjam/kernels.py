@@ -131,7 +131,7 @@ def library():
     c.argtypes = [ctypes.c_int64, ctypes.c_int, f64, ctypes.c_double, ctypes.c_double,
                   ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ptr(np.int64, flags="C,W"),
                   ptr(np.int64, flags="C,W"), ctypes.c_int64, ptr(np.int64, flags="C,W"),
-                  ptr(np.int64, flags="C,W")]
+                  ptr(np.int64, flags="C,W"), ctypes.POINTER(ctypes.c_int)]
     _lib = lib
     return _lib
 
@@ -270,11 +270,15 @@ def cell_pairs(pos, L, cutoff, lo, hi):
     head = np.empty(nc ** d, dtype=np.int64)
     nxt = np.empty(n, dtype=np.int64)
     cap = 40 * max(hi - lo, 1) + 1024
+    ordered = ctypes.c_int(0)
     while True:
         pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
-        got = lib.parjam_cell_pairs(n, d, pos, L, cutoff, nc, lo, hi, head, nxt, cap, pi, pj)
+        got = lib.parjam_cell_pairs(n, d, pos, L, cutoff, nc, lo, hi, head, nxt, cap, pi, pj,
+                                    ctypes.byref(ordered))
         if got >= 0:
             break
         cap = -got
+    if ordered.value:  # one rank (or no ghost first in a pair): already in (i, j) order
+        return np.stack([pi[:got], pj[:got]], axis=1)
     key = np.sort(pi[:got] * n + pj[:got])
     return np.stack([key // n, key % n], axis=1)
