@@ -190,7 +190,7 @@ class ForceField:
         pairs count, in (i, j) order), so both give the same trajectory."""
         self.n_force_calls += 1
         back = -0.5 * dt
-        if self.comm.getSize() == 1:
+        if self.comm.getSize() == 1 and self.pairs is not None:
             # the kernel checks the displacement after its update and stops before the forces
             # when the list has gone stale
             stale = self._fire_call(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, f, v, dt, reset,
@@ -204,7 +204,7 @@ class ForceField:
         if reset:
             step += 0.5 * dt * last.vmax
         self._fire_call(kernels.FIRE_UPDATE, f, v, dt, reset, back, mix_v, mix_f)
-        if (last.disp + step) * (1.0 + 1e-6) >= 0.5 * self.skin:
+        if self.pairs is None or (last.disp + step) * (1.0 + 1e-6) >= 0.5 * self.skin:
             self._rebuild(self.gather())
         self._fire_call(kernels.FIRE_FORCES, f, v, dt, reset, back, mix_v, mix_f)
         return self._sums

@@ -176,3 +176,24 @@ def test_library_is_built_from_this_source(tmp_path):
     built = ctypes.CDLL(str(target))
     assert ctypes.c_char_p.in_dll(built, "parjam_src_sha").value.decode() == sha
     assert kernels.compile_library(str(tmp_path / "x.so"), cc="/nonexistent/cc") is not None
+
+
+def test_fused_step_after_the_list_was_dropped(world):
+    """renew_neighbours() between fused steps (as Newton does before its first step): the next
+    step rebuilds the list and its forces are those of a fresh evaluation, bitwise."""
+    pack = random_packing(3, 200, 0.7, 2.0, "bi", 1.4, np.random.default_rng(12))
+    ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
+    ff.set_positions(pack.pos)
+    f, v, g = ff.vec(), ff.vec(), ff.vec()
+    v.set(0.0)
+    s = ff.fire_start(f, v)
+    s = ff.fire_step(f, v, 0.05, False, 0.9, 0.0, s)
+    ff.renew_neighbours()
+    before = ff.n_rebuilds
+    s = ff.fire_step(f, v, 0.05, False, 0.9, 0.0, s)
+    assert ff.n_rebuilds == before + 1
+    e = ff.evaluate(g)
+    assert np.array_equal(ff.gather(f), ff.gather(g)) and s.energy == pytest.approx(e, rel=1e-14)
+    for vec in (f, v, g):
+        vec.destroy()
+    ff.destroy()
