@@ -133,6 +133,31 @@ def report(rows, extrapolate):
     return "\n".join(out) + "\n"
 
 
+def compare(rows):
+    """FIRE against FIRE 2.0 on the same (N, seed): total FIRE and Newton steps and wall time of
+    the whole protocol, per N (means over the seeds that ran both) and the ratio fire2 / fire
+    of the FIRE steps (geometric mean over seeds, with its range)."""
+    by = {}
+    for r in rows:
+        by.setdefault((r["n"], r["seed"]), {})[r.get("variant", "fire")] = r
+    out = ["| N | seeds | FIRE steps: FIRE | FIRE 2.0 | ratio 2.0 / FIRE (geo. mean, range) "
+           "| Newton steps: FIRE | FIRE 2.0 | wall s: FIRE | FIRE 2.0 |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for n in sorted({k[0] for k in by}):
+        pairs = [v for k, v in by.items() if k[0] == n and {"fire", "fire2"} <= set(v)]
+        if not pairs:
+            continue
+        a = np.array([[p["fire"]["fire"], p["fire2"]["fire"]] for p in pairs], dtype=float)
+        nw = np.array([[p["fire"]["newton"], p["fire2"]["newton"]] for p in pairs], dtype=float)
+        t = np.array([[p["fire"]["t"], p["fire2"]["t"]] for p in pairs])
+        ratio = a[:, 1] / a[:, 0]
+        out.append(f"| {n} | {len(pairs)} | {a[:, 0].mean():,.0f} | {a[:, 1].mean():,.0f} "
+                   f"| {np.exp(np.log(ratio).mean()):.2f} ({ratio.min():.2f} - {ratio.max():.2f}) "
+                   f"| {nw[:, 0].mean():.0f} | {nw[:, 1].mean():.0f} | {t[:, 0].mean():.0f} "
+                   f"| {t[:, 1].mean():.0f} |")
+    return "\n".join(out) + "\n"
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, nargs="*", default=[1024, 2048, 4096])
@@ -148,10 +173,12 @@ def main():
                     help="FIRE variant (default: parjam.fire.DEFAULT_VARIANT)")
     ap.add_argument("--json", default=DEFAULT_JSON)
     ap.add_argument("--report", action="store_true", help="only summarise --json")
+    ap.add_argument("--compare", action="store_true",
+                    help="only tabulate FIRE against FIRE 2.0 from --json (runs with --fire)")
     ap.add_argument("--extrapolate", type=int, nargs="*", default=[100000])
     ap.add_argument("--out", default=None, help="markdown file for --report (default stdout)")
     a = ap.parse_args()
-    if not a.report:
+    if not (a.report or a.compare):
         os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
         for n in a.n:
             for seed in a.seeds:
@@ -163,7 +190,7 @@ def main():
                 with open(a.json, "a") as fh:
                     fh.write(json.dumps(rec) + "\n")
         return
-    text = report(load(a.json), a.extrapolate)
+    text = compare(load(a.json)) if a.compare else report(load(a.json), a.extrapolate)
     if a.out:
         with open(a.out, "w") as fh:
             fh.write(text)
