@@ -201,23 +201,25 @@ int parjam_fire_step(int mode, int64_t nown, int d, double *x, double *v, double
 /* SHA-256 of this file when it was compiled (parjam.kernels checks it against the source) */
 const char *parjam_src_sha = PARJAM_SRC_SHA;
 
-/* Neighbour search by linked cells (parjam.system.cell_pairs_touching): the pairs (i, j) with
- * |x_j - x_i| <= cutoff (minimum image) and i or j in [lo, hi), each once, as two index arrays
- * of capacity ``cap``; in (i, j) order, *sorted = 1, unless some pair's first particle is not
- * owned (a rank's ghost), *sorted = 0.  Positions are folded into [0, L); the box holds nc >= 3
- * cells of edge >= cutoff per direction; ``head``/``next`` are scratch (nc^d and n entries).
+/* Neighbour search by cells (kernels.cell_pairs): the pairs (i, j) with |x_j - x_i| <= cutoff
+ * (minimum image) and i or j in [lo, hi), each once, as two index arrays of capacity ``cap``;
+ * in (i, j) order, *sorted = 1, unless some pair's first particle is not owned (a rank's ghost),
+ * *sorted = 0.  Positions are folded into [0, L); the box holds nc >= 3 cells of edge >= cutoff
+ * per direction.  The particles are counting-sorted by cell (ascending index within a cell) and
+ * their positions copied in that order, so a cell's candidates are read contiguously.
+ * Scratch: start (nc^d + 1), order and cellof (n), sp (n d).
  * Returns the number of pairs, or -(number needed) when cap is too small (nothing usable). */
 int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double cutoff, int nc,
-                          int64_t lo, int64_t hi, int64_t *head, int64_t *next, int64_t cap,
-                          int64_t *pi, int64_t *pj, int *sorted)
+                          int64_t lo, int64_t hi, int64_t *start, int64_t *order, int64_t *cellof,
+                          double *sp, int64_t cap, int64_t *pi, int64_t *pj, int *sorted)
 {
     int64_t ncells = 1;
     for (int a = 0; a < d; a++)
         ncells *= nc;
-    for (int64_t c = 0; c < ncells; c++)
-        head[c] = -1;
+    for (int64_t c = 0; c <= ncells; c++)
+        start[c] = 0;
     const double scale = nc / L;
-    for (int64_t k = n - 1; k >= 0; k--) {
+    for (int64_t k = 0; k < n; k++) {
         int64_t c = 0;
         for (int a = 0; a < d; a++) {
             int64_t m = (int64_t)(pos[k * d + a] * scale);
@@ -227,47 +229,65 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
                 m = 0;
             c = c * nc + m;
         }
-        next[k] = head[c];
-        head[c] = k;
+        cellof[k] = c;
+        start[c + 1]++;
     }
+    for (int64_t c = 0; c < ncells; c++)
+        start[c + 1] += start[c];
+    for (int64_t k = 0; k < n; k++)
+        order[start[cellof[k]]++] = k;
+    for (int64_t c = ncells; c > 0; c--)
+        start[c] = start[c - 1];
+    start[0] = 0;
+    for (int64_t q = 0; q < n; q++)
+        for (int a = 0; a < d; a++)
+            sp[q * d + a] = pos[order[q] * d + a];
     const double cut2 = cutoff * cutoff;
-    const int span2 = d == 3 ? 3 : 1;
+    const int span2 = d == 3 ? 3 : 1; /* offsets in the third direction (none in 2D) */
     int64_t count = 0;
     int64_t unordered = 0; /* pairs (j, i) with j < i not owned: then the caller sorts */
     for (int64_t i = lo; i < hi; i++) {
         const int64_t first = count;
         int m[3] = {0, 0, 0};
-        for (int a = 0; a < d; a++) {
-            int64_t q = (int64_t)(pos[i * d + a] * scale);
-            m[a] = (int)(q >= nc ? nc - 1 : (q < 0 ? 0 : q));
-        }
+        for (int a = d - 1, c = (int)cellof[i]; a >= 0; a--, c /= nc)
+            m[a] = c % nc;
         for (int o0 = 0; o0 < 3; o0++)
             for (int o1 = 0; o1 < 3; o1++)
                 for (int o2 = 0; o2 < span2; o2++) {
-                    int cc[3] = {m[0] + o0 - 1, m[1] + o1 - 1, d == 3 ? m[2] + o2 - 1 : 0};
+                    /* the neighbour cell, and the image shift its wrap implies: x_j - x_i is
+                     * then x_j - (x_i - shift), with no branch per candidate */
+                    const int oo[3] = {o0, o1, o2};
+                    double xr[3] = {0.0, 0.0, 0.0};
                     int64_t c = 0;
-                    for (int a = 0; a < d; a++)
-                        c = c * nc + ((cc[a] + nc) % nc);
-                    for (int64_t j = head[c]; j >= 0; j = next[j]) {
+                    for (int a = 0; a < d; a++) {
+                        int t = m[a] + oo[a] - 1;
+                        double shift = 0.0;
+                        if (t < 0) {
+                            t += nc;
+                            shift = -L;
+                        } else if (t >= nc) {
+                            t -= nc;
+                            shift = L;
+                        }
+                        c = c * nc + t;
+                        xr[a] = pos[i * d + a] - shift;
+                    }
+                    for (int64_t q = start[c]; q < start[c + 1]; q++) {
+                        const int64_t j = order[q];
                         if (j == i || (j >= lo && j < hi && j < i))
                             continue; /* each owned-owned pair once, from its smaller index */
                         double r2 = 0.0;
                         for (int a = 0; a < d; a++) {
-                            double x = pos[j * d + a] - pos[i * d + a];
-                            if (x > 0.5 * L) /* folded positions: one image at most */
-                                x -= L;
-                            else if (x < -0.5 * L)
-                                x += L;
+                            const double x = sp[q * d + a] - xr[a];
                             r2 += x * x;
                         }
-                        if (r2 > cut2)
-                            continue;
-                        if (count < cap) {
+                        const int in = r2 <= cut2;
+                        if (count < cap) { /* written always, kept when in range */
                             pi[count] = i < j ? i : j;
                             pj[count] = i < j ? j : i;
                         }
-                        unordered += j < i;
-                        count++;
+                        unordered += in & (j < i);
+                        count += in;
                     }
                 }
         /* the row of i in ascending j (insertion sort of a few entries): with no unordered

@@ -128,10 +128,10 @@ def library():
                   ctypes.c_int64, ctypes.c_int64, w64]
     c = lib.parjam_cell_pairs
     c.restype = ctypes.c_int64
+    wi64 = ptr(np.int64, flags="C,W")
     c.argtypes = [ctypes.c_int64, ctypes.c_int, f64, ctypes.c_double, ctypes.c_double,
-                  ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ptr(np.int64, flags="C,W"),
-                  ptr(np.int64, flags="C,W"), ctypes.c_int64, ptr(np.int64, flags="C,W"),
-                  ptr(np.int64, flags="C,W"), ctypes.POINTER(ctypes.c_int)]
+                  ctypes.c_int, ctypes.c_int64, ctypes.c_int64, wi64, wi64, wi64, w64,
+                  ctypes.c_int64, wi64, wi64, ctypes.POINTER(ctypes.c_int)]
     _lib = lib
     return _lib
 
@@ -258,7 +258,7 @@ def _max_disp2(x, ref, L):
 
 def cell_pairs(pos, L, cutoff, lo, hi):
     """The pairs i < j with |x_j - x_i| <= cutoff (minimum image) and i or j in [lo, hi),
-    sorted by (i, j), from a linked-cell search in compiled code over positions ``pos`` folded
+    sorted by (i, j), from a cell search in compiled code over positions ``pos`` folded
     into [0, L) (all n, (n, d)).  None when there is no compiled library or the box holds fewer
     than 3 cells of edge >= cutoff per direction (then parjam.system's k-d tree serves)."""
     lib = library()
@@ -267,14 +267,15 @@ def cell_pairs(pos, L, cutoff, lo, hi):
     if lib is None or nc < 3 or d not in (2, 3) or nc ** d > 8 * n + 1000:
         return None
     pos = np.ascontiguousarray(pos, dtype=np.float64)
-    head = np.empty(nc ** d, dtype=np.int64)
-    nxt = np.empty(n, dtype=np.int64)
+    start = np.empty(nc ** d + 1, dtype=np.int64)
+    order, cellof = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    sp = np.empty((n, d))
     cap = 40 * max(hi - lo, 1) + 1024
     ordered = ctypes.c_int(0)
     while True:
         pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
-        got = lib.parjam_cell_pairs(n, d, pos, L, cutoff, nc, lo, hi, head, nxt, cap, pi, pj,
-                                    ctypes.byref(ordered))
+        got = lib.parjam_cell_pairs(n, d, pos, L, cutoff, nc, lo, hi, start, order, cellof,
+                                    sp, cap, pi, pj, ctypes.byref(ordered))
         if got >= 0:
             break
         cap = -got
