@@ -197,3 +197,34 @@ def test_fused_step_after_the_list_was_dropped(world):
     for vec in (f, v, g):
         vec.destroy()
     ff.destroy()
+
+
+@pytest.mark.parametrize("move, rebuilt", [(0.1, False), (0.7, True)])
+def test_one_particle_moving_past_half_the_skin_rebuilds_everywhere(world, move, rebuilt):
+    """Only particle 0 (rank 0's) moves, by 0.1 or 0.7 skins in one fused step: the list is
+    rebuilt on every rank exactly when the move passes half the skin (one rank: the kernel's
+    own check; several: the bound from the last reduction, which no other rank's particles
+    raise), and the forces equal a fresh evaluation bitwise either way."""
+    pack = random_packing(3, 300, 0.6, 2.0, "mono", 1.4, np.random.default_rng(4))
+    ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
+    ff.set_positions(pack.pos)
+    f, v, g = ff.vec(), ff.vec(), ff.vec()
+    v.set(0.0)
+    dt = 0.01
+    if ff.lo == 0:
+        v.array[:3] = np.array([1.0, 0.0, 0.0]) * move * ff.skin / dt
+    s = ff.fire_start(f, v)
+    before = ff.n_rebuilds
+    x0 = np.array(ff.gather())
+    # no force term (f zeroed, mix_f = 0): v' = v, x' = x + dt v
+    ff.local(f)[:] = 0.0
+    s = ff.fire_step(f, v, dt, False, 1.0, 0.0, s)
+    x1 = np.array(ff.gather())
+    assert np.abs(x1[0] - x0[0] - [move * ff.skin, 0, 0]).max() < 1e-12
+    assert np.array_equal(x1[1:], x0[1:])
+    assert (ff.n_rebuilds == before + 1) == rebuilt
+    e = ff.evaluate(g)
+    assert np.array_equal(ff.gather(f), ff.gather(g)) and s.energy == pytest.approx(e, rel=1e-14)
+    for vec in (f, v, g):
+        vec.destroy()
+    ff.destroy()
