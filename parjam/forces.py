@@ -303,7 +303,8 @@ class FireSums:
     __slots__ = ("energy", "power", "f2", "v2", "fmax", "vmax", "disp")
 
     def __init__(self, s):
-        self.energy, self.power, self.f2, self.v2 = float(s[0]), float(s[1]), float(s[2]), float(s[3])
+        self.energy, self.power = float(s[0]), float(s[1])
+        self.f2, self.v2 = float(s[2]), float(s[3])
         self.fmax, self.vmax, self.disp = (float(np.sqrt(s[4])), float(np.sqrt(s[5])),
                                            float(np.sqrt(s[6])))
 

@@ -10,18 +10,17 @@ step-by-step PETSc FIRE it replaced (parjam.fire.fire_unfused), side by side in 
 
 For each N: a random 3D monodisperse packing at phi = 0.70 (harmonic), quenched by --warm FIRE
 steps or to --warm-ftol (mid-minimisation, lists rebuilt every ~10-30 steps, or nearer the
-minimum where the expensive creeping happens and rebuilds are rare); then,
-alternating (ABCABC...) --repeat times so that a load change hits all three, --steps old steps,
---steps new steps (each from the same positions) and --steps calls of the kernel alone
-(kernels.pair_forces on the rank's halo pairs and positions), timed in process CPU time (on a
-machine shared with other jobs wall times swing by 2-10x; CPU time counts this process's work,
-including MPI's waiting, which with mpi_yield_when_idle is mostly yielded).  The old step is the whole step
+minimum where the expensive creeping happens and rebuilds are rare).  Then, alternating
+(ABCABC...) --repeat times so that a load change hits all three: --steps old steps, --steps
+new steps (each from the same positions) and --steps calls of the kernel alone
+(kernels.pair_forces on the rank's halo pairs and positions).  The old step is the whole step
 before this work: step-by-step PETSc FIRE and a k-d tree rebuild; the new one rebuilds by
-linked cells.  Reported: ns per particle
-per step (N total; on P ranks the slowest rank, so ideal scaling halves it), the fastest of
-the repeats (on a shared machine the least disturbed), and ns per listed pair of the kernel.
-Each run appends one JSON line per N to
---json; --report turns the file into the "Fused FIRE step" section of docs/scaling.md.
+cells.  Timed in process CPU time: on a machine shared with other jobs wall times swing by
+2-10x; CPU time counts this process's work, including MPI's waiting, which with
+mpi_yield_when_idle is mostly yielded.  Reported: ns per particle per step (N total; on P
+ranks the slowest rank, so ideal scaling halves it), the fastest of the repeats (on a shared
+machine the least disturbed), and ns per listed pair of the kernel.  Each run appends one JSON
+line per N to --json; --report writes the marked section of docs/scaling.md ("Session 9").
 """
 
 import argparse
@@ -122,8 +121,8 @@ def report(rows):
                    f"| {ns['old'] / ns['kernel']:.2f} | {ns['old'] / ns['new']:.2f} "
                    f"| {per_pair:.1f} | {r['rebuilds_per_step']['new']:.3f} |")
     out.append("")
-    out.append("ns per particle per step (process CPU time, slowest rank, fastest of the repeats of "
-               f"{rows[0]['steps']} steps); kernel ns per listed pair on the busiest rank; the "
+    out.append("ns per particle per step (process CPU time, slowest rank, fastest of the "
+               f"repeats of {rows[0]['steps']} steps); kernel ns per listed pair on the busiest rank; the "
                "state: FIRE steps from the random start before the timing, and max|F| there.")
     out.append(END)
     return "\n".join(out)
