@@ -122,8 +122,9 @@ def report(rows):
                    f"| {per_pair:.1f} | {r['rebuilds_per_step']['new']:.3f} |")
     out.append("")
     out.append("ns per particle per step (process CPU time, slowest rank, fastest of the "
-               f"repeats of {rows[0]['steps']} steps); kernel ns per listed pair on the busiest rank; the "
-               "state: FIRE steps from the random start before the timing, and max|F| there.")
+               f"repeats of {rows[0]['steps']} steps); kernel ns per listed pair on the busiest "
+               "rank; the state: FIRE steps from the random start before the timing, and max|F| "
+               "there.")
     out.append(END)
     return "\n".join(out)
 
