@@ -91,7 +91,7 @@ def test_bootstrap_resamples_members():
 # --------------------------------------------------------------------------- a synthetic summary
 
 def write_summary(path, members=4, seed=0):
-    """A summary file in the layout of parjam.commands.run.write_summary with known laws."""
+    """A summary file in the layout of parjam.study.summary.write_summary with known laws."""
     rng = np.random.default_rng(seed)
     labels = ["phi_c"] + [f"dphi{x:.1e}" for x in DPHI]
     with h5py.File(path, "w") as f:

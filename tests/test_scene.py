@@ -1,4 +1,4 @@
-"""Scenes (parjam.scene) and ``parjam run`` (parjam.commands.run): the parser's errors, the plan
+"""Scenes (parjam.study) and ``parjam run`` (parjam.study.runner): the parser's errors, the plan
 computes only what the observables need, a tiny scene end to end against the library, skipping
 finished work and resuming an interrupted run.  Serially and under mpirun -n 2."""
 
@@ -7,8 +7,11 @@ import os
 import numpy as np
 import pytest
 
-from parjam import scene as sc
 from parjam.errors import ParjamError
+from parjam.study import plan as study_plan
+from parjam.study import runner as runmod
+from parjam.study import scene as sc
+from parjam.study.summary import read_summary
 
 BASE = """
 [[system]]
@@ -103,7 +106,7 @@ def test_extrapolated_phi_c_has_no_phi_c_state_and_its_own_keys():
     assert ex.observables["fluctuations"]["at"] == ["dphi1.0e-03"]
     assert bi.observables["fluctuations"]["at"] == ["phi_c", "dphi1.0e-03"]
     assert "phic_method" not in bi.protocol.key()
-    pack_ex, pack_bi = sc.plan(ex)[0], sc.plan(bi)[0]
+    pack_ex, pack_bi = study_plan.plan(ex)[0], study_plan.plan(bi)[0]
     assert pack_ex.key != pack_bi.key and "extrapolated" in pack_ex.solvers()
     assert "bisection" in pack_bi.solvers()
 
@@ -115,40 +118,40 @@ def kinds(stages):
 
 
 def test_contacts_only_plans_no_spectrum():
-    stages = sc.plan(sc.loads(scene_text("contacts = true")))
+    stages = study_plan.plan(sc.loads(scene_text("contacts = true")))
     assert kinds(stages) == [("pack", None), ("network", None), ("summary", None)]
 
 
 def test_plan_picks_the_cheapest_solver():
     big = BASE.replace("N = 64", "N = 4096")
     # D(omega) of the relaxed matrix only: no full matrix, eigenvalues only (no vectors)
-    st = sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")))
+    st = study_plan.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")))
     spec = [x for x in st if x.kind == "spectrum"]
     assert [x.matrix for x in spec] == ["relaxed"]
     assert {p["solver"] for p in spec[0].params.values()} == {"dense-eigvalsh"}
     # per-mode sums need eigenvectors, only at the state asked for
-    st = sc.plan(sc.loads(scene_text("dos = true\ntrans = { at = [1e-3] }")))
+    st = study_plan.plan(sc.loads(scene_text("dos = true\ntrans = { at = [1e-3] }")))
     full = next(x for x in st if x.kind == "spectrum")
     assert full.params["dphi1.0e-03"]["solver"] == "dense-eigh"
     assert full.params["dphi1.0e-02"]["solver"] == "dense-eigvalsh"
     # large systems: the lowest modes by shift-and-invert, a window by slicing
-    st = sc.plan(sc.loads(scene_text("lowest = { k = 20 }", big)))
+    st = study_plan.plan(sc.loads(scene_text("lowest = { k = 20 }", big)))
     assert {p["solver"] for p in st[2].params.values()} == {"sinvert"}
-    st = sc.plan(sc.loads(scene_text("omega_star = { window = [0, 0.2] }", big)))
+    st = study_plan.plan(sc.loads(scene_text("omega_star = { window = [0, 0.2] }", big)))
     assert {p["solver"] for p in st[2].params.values()} == {"slice"}
     # the whole spectrum of a large system is refused before any work
     with pytest.raises(ParjamError, match="dense_max_dof"):
-        sc.plan(sc.loads(scene_text("dos = true\n[solver]\ndense_max_dof = 1000\n", big)))
+        study_plan.plan(sc.loads(scene_text("dos = true\n[solver]\ndense_max_dof = 1000\n", big)))
 
 
 def test_stage_keys_follow_their_inputs():
     a = {st.kind + str(st.matrix): st.key
-         for st in sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")))}
+         for st in study_plan.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")))}
     b = {st.kind + str(st.matrix): st.key
-         for st in sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")
+         for st in study_plan.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")
                                     .replace("members = 2", "members = 3")))}
     c = {st.kind + str(st.matrix): st.key
-         for st in sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")
+         for st in study_plan.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")
                                     .replace("seed = 3", "seed = 8")))}
     # more members: the packings and spectra of the first two are reused, the summary is not
     assert a["packNone"] == b["packNone"] and a["spectrumrelaxed"] == b["spectrumrelaxed"]
@@ -174,11 +177,10 @@ def test_dry_run_prints_the_plan(tmp_path, capsys, world):
 # --------------------------------------------------------------------------- running
 
 def run_scene(text, out, world, stop_after=None):
-    from parjam.commands import run as runmod
     from parjam.progress import Progress
 
     scene = sc.loads(text, "test.toml")
-    runner = runmod.Runner(scene, sc.plan(scene), out, world, Progress(quiet=True),
+    runner = runmod.Runner(scene, study_plan.plan(scene), out, world, Progress(quiet=True),
                            stop_after=stop_after)
     return runner.run(), runner
 
@@ -190,7 +192,6 @@ def log_lines(out):
 
 def test_contacts_only_runs_no_eigensolver(shared_tmp, world, monkeypatch):
     from parjam import moduli, softmodes, spectrum
-    from parjam.commands import run as runmod
 
     def forbidden(*a, **k):
         raise AssertionError("an eigensolver or dynamical matrix was used")
@@ -216,13 +217,12 @@ trans = { at = [1e-3] }
 
 def test_tiny_scene_matches_the_library(shared_tmp, world):
     from parjam import network, observables, spectrum
-    from parjam.commands import run as runmod
     from parjam.packing import make_jammed
 
     out = os.path.join(shared_tmp, "tiny")
     code, runner = run_scene(TINY, out, world)
     assert code == 0
-    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    summary = read_summary(next(iter(runner.summaries.values())))
     for member in range(2):
         phi_c, packs = make_jammed(3, 64, [1e-3, 1e-2], seed=3, member=member)
         for pack in packs:
@@ -246,7 +246,6 @@ def test_tiny_scene_matches_the_library(shared_tmp, world):
 
 
 def test_rerun_skips_finished_stages(shared_tmp, world):
-    from parjam.commands import run as runmod
 
     out = os.path.join(shared_tmp, "tiny")  # made by the previous test, or made here
     run_scene(TINY, out, world)
@@ -264,7 +263,6 @@ def test_rerun_skips_finished_stages(shared_tmp, world):
 
 
 def test_interrupted_run_resumes_at_the_next_member(shared_tmp, world):
-    from parjam.commands import run as runmod
 
     text = scene_text("contacts = true\ndos = { matrices = ['relaxed'] }").replace(
         "members = 2", "members = 4")
@@ -289,7 +287,7 @@ def test_interrupted_run_resumes_at_the_next_member(shared_tmp, world):
     assert lines[:len(first)] == first
     computed = [line for line in lines if " member " in line]
     assert len(computed) == len(set(computed)) == 3 * 4  # pack, network, spectrum x 4 members
-    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    summary = read_summary(next(iter(runner.summaries.values())))
     assert summary["dphi1.0e-02"]["network"]["dz"].shape == (4,)
 
 
@@ -311,11 +309,10 @@ omega_star = {{ matrices = ["relaxed"] }}
 
 def law_tables(shared_tmp, world, name, labels, **fmt):
     """Run a tiny 3D scene; (p, dz, omega*) of its ``labels`` as members x states arrays."""
-    from parjam.commands import run as runmod
 
     code, runner = run_scene(LAWS_SCENE.format(**fmt), os.path.join(shared_tmp, name), world)
     assert code == 0
-    s = runmod.read_summary(next(iter(runner.summaries.values())))
+    s = read_summary(next(iter(runner.summaries.values())))
     return tuple(np.array([s[lab][kind][q] if matrix is None else s[lab][kind][matrix][q]
                            for lab in labels]).T
                  for kind, matrix, q in [("network", None, "pressure"), ("network", None, "dz_iso"),
@@ -353,7 +350,6 @@ def test_lowest_modes_and_window_use_slepc(shared_tmp, world):
     """k lowest modes by shift-and-invert (vectors stored) and a window by slicing, as the plan
     says when dense is not allowed, equal the dense eigenvalues of the same packing."""
     from parjam import observables, spectrum
-    from parjam.commands import run as runmod
     from parjam.packing import make_jammed
 
     # two members: one per rank under mpirun -n 2 (a shared member would be packed by a
@@ -366,7 +362,7 @@ small_dof = 0
 """
     scene = sc.loads(text)
     solvers = {st.matrix: st.params["dphi1.0e-02"]["solver"]
-               for st in sc.plan(scene) if st.kind == "spectrum"}
+               for st in study_plan.plan(scene) if st.kind == "spectrum"}
     assert solvers == {"full": "sinvert", "relaxed": "slice"}
     out = os.path.join(shared_tmp, "slepc")
     code, runner = run_scene(text, out, world)
@@ -392,7 +388,6 @@ def test_kpm_plateau_gives_the_dense_omega_star_from_the_lowest_modes(shared_tmp
     modes; both close to the dense whole-spectrum values of the same packing, where the partial
     spectrum's own plateau would be biased low."""
     from parjam import observables, spectrum
-    from parjam.commands import run as runmod
     from parjam.packing import make_jammed
 
     text = BASE.replace("dphi = [1e-3, 1e-2]", "dphi = [1e-2]").replace("N = 64", "N = 256") \
@@ -424,7 +419,6 @@ small_dof = 0
 
 def test_a_member_that_does_not_jam_is_left_out(shared_tmp, world, monkeypatch):
     from parjam import ensemble
-    from parjam.commands import run as runmod
     from parjam.errors import UnjammedError
 
     real = ensemble.pack_member
@@ -439,7 +433,7 @@ def test_a_member_that_does_not_jam_is_left_out(shared_tmp, world, monkeypatch):
     out = os.path.join(shared_tmp, "failing")
     code, runner = run_scene(text, out, world)
     assert code == 0
-    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    summary = read_summary(next(iter(runner.summaries.values())))
     assert summary["attrs"]["members"] == 2
     assert list(summary["attrs"]["failed_members"]) == [1]
     assert summary["dphi1.0e-02"]["network"]["dz"].shape == (2,)
@@ -453,7 +447,6 @@ def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world
     ranks of one member only: the run records it as missing instead of stopping (on 2 ranks the
     other group would otherwise wait for ever)."""
     from parjam import spectrum
-    from parjam.commands import run as runmod
     from parjam.errors import UnjammedError
 
     real = spectrum.active_system
@@ -467,7 +460,7 @@ def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world
     out = os.path.join(shared_tmp, "fragile")
     code, runner = run_scene(scene_text("dos = { matrices = ['relaxed'] }"), out, world)
     assert code == 0
-    s = runmod.read_summary(next(iter(runner.summaries.values())))
+    s = read_summary(next(iter(runner.summaries.values())))
     g = s["dphi1.0e-03"]["spectrum"]["relaxed"]
     assert np.isnan(g["omega_star"][1]) and np.isfinite(g["omega_star"][0])
     assert set(np.unique(g["member_of_mode"])) == {0}
@@ -478,12 +471,11 @@ def test_extrapolated_scene_matches_the_pack_command(shared_tmp, world):
     """A scene with phic_method = "extrapolate" packs exactly what ``parjam pack --phic-method
     extrapolate`` packs (same phi_c, phi and pressure per member)."""
     from parjam import cli, io, network
-    from parjam.commands import run as runmod
 
     out = os.path.join(shared_tmp, "extrap-scene")
     code, runner = run_scene(scene_text("contacts = true\n", EXTRAP), out, world)
     assert code == 0
-    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    summary = read_summary(next(iter(runner.summaries.values())))
     assert "phi_c" not in summary
     ref = os.path.join(shared_tmp, "extrap-pack")
     assert cli.main(["pack", "--dim", "3", "--n", "64", "--dphi", "1e-3", "1e-2", "--members",

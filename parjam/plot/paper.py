@@ -29,11 +29,11 @@ DPI = 80
 # --------------------------------------------------------------------------- summaries
 
 def read(path):
-    """One summary file (parjam.commands.run.write_summary) as nested dicts; ParjamError if it
+    """One summary file (parjam.study.summary.write_summary) as nested dicts; ParjamError if it
     is not one."""
     import h5py
 
-    from parjam.commands.run import read_summary
+    from parjam.study.summary import read_summary
 
     path = os.fspath(path)
     if not os.path.isfile(path):

@@ -47,3 +47,26 @@ def ensemble_dos_figure(omega, density, error, path, label="ensemble", omega_sta
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def dos_pictures(path, stem, dpi):
+    """D(omega) of every matrix, the states overlaid (log-linear, as the paper's figures)."""
+    from parjam.study.summary import read_summary
+
+    s = read_summary(path)
+    states = [x.decode() for x in s["attrs"]["states"]]
+    kinds = sorted({k for lab in states if lab in s for k in s[lab].get("spectrum", {})})
+    plt = pyplot()
+    for kind in kinds:
+        fig, ax = plt.subplots(figsize=(5, 3.6))
+        for lab in states:
+            dos = s.get(lab, {}).get("spectrum", {}).get(kind, {}).get("dos")
+            if dos is not None:
+                ax.errorbar(dos["omega"], dos["density"], yerr=dos["density_error"], fmt="-",
+                            lw=1, label=lab)
+        ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$ per mode",
+               title=f"{s['attrs']['system']}: {kind}")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(f"{stem}-dos-{kind}.png", dpi=dpi)
+        plt.close(fig)
