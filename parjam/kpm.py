@@ -42,8 +42,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, observables
+from parjam import env, observables, spectrum
 from parjam.errors import ParjamError
+from parjam.logstage import log_stage
 
 CHUNK = 1 << 16  # entries per independently seeded chunk of a probe vector
 PROBES = ("rademacher", "gaussian")
@@ -277,7 +278,6 @@ def moments(A, d, n_modes, kind="full", n_moments=256, n_probes=16, seed=0,
             probe_kind="rademacher", bounds=None, lanczos_steps=40, margin=1e-3, progress=None):
     """KPM moments of the spectral density of the distributed matrix A (non-rattler rows, blocks
     of d; translations projected out).  ``bounds`` = (a, b) skips the Lanczos estimate."""
-    from parjam.packing import log_stage
 
     if n_moments < 2:
         raise ParjamError(f"--moments must be >= 2, got {n_moments}")
@@ -368,8 +368,6 @@ def dos_record(res, bins=40, omega_max=None, plateau=None):
 def compute(comm, system, kind="full", n_moments=256, n_probes=16, seed=0,
             probe_kind="rademacher", bounds=None, progress=None):
     """KPM moments of one matrix of an ActiveSystem (parjam.spectrum): assemble, run, free."""
-    from parjam import spectrum
-
     A = spectrum.dynamical_matrix(comm, system, kind)
     try:
         return moments(A, system.d, system.n_modes, kind, n_moments, n_probes, seed,

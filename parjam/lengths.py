@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, hessian, observables, softmodes
+from parjam import env, hessian, observables, softmodes, solver_choice
 from parjam.errors import ParjamError
 
 
@@ -401,7 +401,6 @@ def lstar(comm, pack, ells, samples=8, seed=0, net=None, progress=None, e0=None,
 # --------------------------------------------------------------------------- the whole analysis
 
 WHAT = ("speeds", "omega", "lstar", "structure")
-COMPLETE_MAX_DOF = 12000  # without --k: the complete spectrum by dense LAPACK up to this size
 
 
 @dataclass
@@ -511,13 +510,13 @@ def compute(comm, pack, what=("speeds", "omega"), matrix="full", k=None, method=
     if "omega" in what or "structure" in what:
         system = spectrum.active_system(pack, net)
         kk = k if k is not None else system.n_modes
-        if k is None:  # omega* from the complete spectrum: dense LAPACK
-            if system.dof > COMPLETE_MAX_DOF and method != "dense":
+        if k is None and method != "dense":  # omega* from the complete spectrum
+            try:
+                method = solver_choice.choose_solver(system.dof, system.n_modes, whole=True)
+            except ParjamError as exc:
                 raise ParjamError(
-                    f"{system.dof} degrees of freedom: too many for a complete dense spectrum "
-                    f"(limit {COMPLETE_MAX_DOF}): give --k (the lowest modes; omega* then needs "
-                    "the plateau within them, see --plateau) or --method dense")
-            method = "dense"
+                    f"{exc}: give --k (the lowest modes; omega* then needs the plateau within "
+                    "them, see --plateau) or --method dense") from None
         log(f"spectrum: {kk} lowest modes of the {matrix} matrix")
         spec = spectrum.compute(comm, system, matrix, k=kk, method=method,
                                 vectors="structure" in what, progress=log)

@@ -49,8 +49,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, factor, hessian, potential
+from parjam import env, factor, hessian, io, potential
 from parjam.errors import ParjamError
+from parjam.logstage import log_stage
 from parjam.network import analyze
 
 
@@ -342,7 +343,6 @@ def energy_tensor(c_affine, Q, d, volume):
 
 def compute(pack, comm=None, progress=None):
     """Linear-response elastic constants of a packing on communicator ``comm`` (PETSc)."""
-    from parjam.packing import log_stage
 
     PETSc = env.petsc()
     comm = comm or PETSc.COMM_WORLD
@@ -368,8 +368,6 @@ def compute(pack, comm=None, progress=None):
 
 def write(path, mod, prov=None):
     """Write /moduli/* (tensors, scalars, solver report) atomically; call on one rank."""
-    from parjam import io
-
     with io.atomic_h5(path) as f:
         io.write_h5md_header(f, prov)
         g = f.create_group("moduli")

@@ -16,6 +16,9 @@ import numpy as np
 from parjam import env, minimize
 from parjam.errors import ParjamError, UnjammedError
 from parjam.forces import ForceField
+from parjam.logstage import log_stage
+from parjam.network import analyze
+from parjam.protocol import DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL, DEFAULT_PHI_START
 from parjam.system import Packing, sphere_volume
 
 DISPERSITIES = ("mono", "bi", "poly")
@@ -35,6 +38,11 @@ def diameters(n, dispersity="mono", ratio=1.4, rng=None):
     if dispersity == "poly":
         return 1.0 + (ratio - 1.0) * rng.random(n), np.zeros(n, dtype=np.int32)
     raise ParjamError(f"unknown dispersity {dispersity!r}; choose from {', '.join(DISPERSITIES)}")
+
+
+def member_rng(seed, member):
+    """Independent, reproducible stream for member m, whatever the number of ranks."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(member)]))
 
 
 def random_packing(d, n, phi, alpha=2.0, dispersity="mono", ratio=1.4, rng=None):
@@ -63,30 +71,11 @@ def spatial_order(pos, L, cell):
     return np.argsort(key, kind="stable")
 
 
-class log_stage:
-    """A PETSc log stage (shown by -log_view) around a phase of the work."""
-
-    _stages = {}
-
-    def __init__(self, name):
-        PETSc = env.petsc()
-        if name not in self._stages:
-            self._stages[name] = PETSc.Log.Stage(name)
-        self.stage = self._stages[name]
-
-    def __enter__(self):
-        self.stage.push()
-
-    def __exit__(self, *exc):
-        self.stage.pop()
-        return False
-
-
 @dataclass
 class JamSettings:
-    ftol: float = 1e-13  # max |F| on every particle (eps/sigma units)
-    e_low: float = 1e-16  # energy-per-particle window of the phi_c state
-    e_high: float = 2e-16
+    ftol: float = DEFAULT_FTOL  # max |F| on every particle (eps/sigma units)
+    e_low: float = DEFAULT_ENERGY_WINDOW[0]  # energy-per-particle window of the phi_c state
+    e_high: float = DEFAULT_ENERGY_WINDOW[1]
     first_step: float = 2e-3  # compression step while unjammed (doubles each time)
     max_iter: int = 200
     ptol: float = 1e-6  # relative tolerance of a target pressure
@@ -187,8 +176,6 @@ class Jammer:
         return res
 
     def pressure(self):
-        from parjam.network import analyze
-
         return analyze(self.pack).pressure
 
     def state(self, res, label, **info):
@@ -370,13 +357,10 @@ def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=1.4, alpha
     The same (seed, member) gives the same configuration as ``parjam pack``.  ``comm`` defaults
     to COMM_SELF, so every rank builds the same packing (handy in tests and scripts).
     """
-    from parjam import env
-    from parjam.ensemble import member_rng
-
     PETSc = env.petsc()
     comm = PETSc.COMM_SELF if comm is None else comm
     dispersity = dispersity or ("bi" if d == 2 else "mono")
-    phi0 = phi_start or {2: 0.86, 3: 0.66}[d]
+    phi0 = phi_start or DEFAULT_PHI_START[d]
     pack = random_packing(d, n, phi0, alpha, dispersity, ratio, member_rng(seed, member))
     jam = Jammer(comm, pack, settings)
     try:

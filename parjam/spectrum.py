@@ -26,19 +26,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, factor, hessian, network, observables
+from parjam import env, factor, hessian, network, observables, solver_choice
 from parjam.errors import ParjamError, UnjammedError
 
 METHODS = ("auto", "dense", "sinvert", "slice")
 MATRICES = hessian.KINDS
-DENSE_MAX_DOF = 3000  # auto: dense LAPACK up to this many degrees of freedom d N'
-# auto with --k (measured, docs/speed-accuracy.md): from 759 dof on sinvert was faster than dense
-# for k <= 10 % of the modes (1.3x at 10 %, 30x for k = 10 at 3066 dof) and tied at 375 dof;
-# dense won from about 15-20 % of the modes on (1.6x at a third); dense reaches residuals
-# ~1e-15, sinvert ~1e-12 at --tol 1e-10
-DENSE_SMALL_DOF = 400  # auto --k: dense below this many dof whatever k
-DENSE_FRACTION = 0.15  # auto --k: dense (up to DENSE_MAX_DOF) when k >= this fraction of modes
-DENSE_TOL = 1e-12  # auto --k: dense (up to DENSE_MAX_DOF) when --tol is tighter than this
 DENSE_LIMIT_DOF = 20000  # --method dense refused above (a 20000^2 matrix is 3.2 GB)
 ZERO_TOL = 1e-9  # |lambda| / ||D||_inf below which an eigenvalue belongs to the zero cluster
 PREFIX = "modes_"
@@ -192,21 +184,13 @@ class Spectrum:
 
 
 def choose_method(method, dof, window, k=None, n_modes=None, tol=None):
-    """``auto``: above DENSE_MAX_DOF degrees of freedom slice (window) or sinvert; below it dense,
-    except for the k lowest modes (k and n_modes given), where sinvert is chosen unless the
-    system is tiny (DENSE_SMALL_DOF), k is a large share of the modes (DENSE_FRACTION) or the
-    tolerance is below what sinvert reaches cheaply (DENSE_TOL): the crossovers measured in
-    docs/speed-accuracy.md."""
+    """``auto``: the choice of parjam.solver_choice (the crossovers measured in
+    docs/speed-accuracy.md) for the k lowest modes or a window (a window wins when both are
+    given); any other method is returned as it is."""
     if method != "auto":
         return method
-    if dof > DENSE_MAX_DOF:
-        return "slice" if window is not None else "sinvert"
-    if window is not None or k is None or n_modes is None:
-        return "dense"
-    if (dof <= DENSE_SMALL_DOF or k >= DENSE_FRACTION * n_modes
-            or (tol is not None and tol < DENSE_TOL)):
-        return "dense"
-    return "sinvert"
+    return solver_choice.choose_solver(dof, n_modes, k=k if window is None else None,
+                                       window=window, tol=tol)
 
 
 def window_interval(window, norm):

@@ -9,7 +9,8 @@ hash of its inputs, with the solver per spectrum and rough estimates (``--dry-ru
   observable asks for; the solver per state follows from what is needed there:
   the whole spectrum (D(omega), omega* without a window) -> dense LAPACK, eigenvalues only unless
   per-mode sums are wanted; a window -> SLEPc slicing; the k lowest modes -> SLEPc
-  shift-and-invert (dense below ``solver.small_dof``).  No relaxed matrix unless asked for, no
+  shift-and-invert, by the policy of parjam.solver_choice (dense for windows and k up to
+  ``solver.small_dof``).  No relaxed matrix unless asked for, no
   eigenvectors stored unless ``lowest.vectors``;
 - ``moduli``, ``softmodes``, ``fluctuations`` only when asked for;
 - ``summary``: ensemble means, errors and D(omega) averages of everything computed.
@@ -19,6 +20,7 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 
+from parjam import solver_choice
 from parjam.errors import ParjamError
 from parjam.study.scene import System
 
@@ -105,19 +107,24 @@ def spectrum_needs(scene, system):
 
 
 def choose_solver(req, system, solver):
-    """The cheapest solver that gives what the state needs (see the module doc)."""
+    """The solver of one state's spectrum by the one policy (parjam.solver_choice), with the
+    scene's [solver] limits; a dense solve is "dense-eigvalsh" (eigenvalues only) unless
+    per-mode sums or vectors are wanted."""
     dof = system.max_dof
-    if req["all"]:
-        if dof > solver["dense_max_dof"]:
-            raise ParjamError(
-                f"system {system.name}: the whole spectrum of {dof} degrees of freedom exceeds "
-                f"solver.dense_max_dof = {solver['dense_max_dof']}: give a window or k")
-        return "dense-eigh" if req["per_mode"] or req["vectors"] else "dense-eigvalsh"
-    if req["window"] is not None and req["k"]:
-        return "dense-eigh" if dof <= solver["small_dof"] else "slice+sinvert"
-    if req["window"] is not None:
-        return "dense-eigh" if dof <= solver["small_dof"] else "slice"
-    return "dense-eigh" if dof <= solver["small_dof"] else "sinvert"
+    limits = solver_choice.Limits(whole_max_dof=solver["dense_max_dof"],
+                                  partial_dense_max_dof=solver["small_dof"])
+    try:
+        sol = solver_choice.choose_solver(dof, dof - system.d, k=req["k"] or None,
+                                          window=req["window"], whole=req["all"],
+                                          tol=solver["tol"], limits=limits)
+    except ParjamError:
+        raise ParjamError(
+            f"system {system.name}: the whole spectrum of {dof} degrees of freedom exceeds "
+            f"solver.dense_max_dof = {solver['dense_max_dof']}: give a window or k") from None
+    if sol != "dense":
+        return sol
+    return "dense-eigvalsh" if req["all"] and not (req["per_mode"] or req["vectors"]) \
+        else "dense-eigh"
 
 
 def estimate(stage, scene):

@@ -1,21 +1,16 @@
 """The per-state work of a scene's analysis stages: one record (a dict of arrays and scalars) per
 packing state, computed by the physics modules."""
 
-import collections
-
 import numpy as np
 
+from parjam import kpm, moduli, network, observables, spectrum
+from parjam import softmodes as sm
 from parjam.errors import ParjamError
 
-#: what this process computed, by kind (tests check that a scene computes only what it needs)
-COUNTERS = collections.Counter()
 
 def network_record(pack):
     """z, dz, p and the rest of the contact-network summary (parjam.network)."""
-    from parjam.network import analyze
-
-    COUNTERS["network"] += 1
-    rec = dict(analyze(pack).summary())
+    rec = dict(network.analyze(pack).summary())
     rec["phi_c"] = float(pack.meta.get("phi_c", np.nan))
     # dz measured from the isostatic count, 2 (Nc - Nc_iso) / N': z - 2d without its finite-size
     # offset -2d/N' (z = 2d - 2d/N' + 2/N' at isostaticity in a periodic box)
@@ -26,8 +21,6 @@ def network_record(pack):
 def dense_eigenvalues(comm, system, kind):
     """All eigenvalues of one matrix without eigenvectors (LAPACK eigvalsh of the deflated dense
     matrix, parjam.spectrum's dense reference without its vectors): rank 0 computes, all get."""
-    from parjam import spectrum
-
     mpi = comm.tompi4py()
     res = None
     if mpi.Get_rank() == 0:
@@ -40,13 +33,10 @@ def dense_eigenvalues(comm, system, kind):
 
 
 def spectrum_record(comm, pack, kind, req, tol):
-    """The spectrum a state needs (req from parjam.scene.spectrum_needs, with its solver), with
+    """The spectrum a state needs (req from parjam.study.plan.spectrum_needs, with its solver), with
     D0 and omega* (parjam.observables) and the per-mode sums when they were computed."""
-    from parjam import observables, spectrum
-
     system = spectrum.active_system(pack)
     sol = req["solver"]
-    COUNTERS[f"eigensolve:{sol}"] += 1
     rec = {"solver": sol, "n_modes_total": system.n_modes, "n_active": system.n}
     if sol == "dense-eigvalsh":
         lam, norm = dense_eigenvalues(comm, system, kind)
@@ -104,18 +94,12 @@ def kpm_plateau_summary(comm, system, kind, omega):
     is exact up to the highest computed mode; NaN if the modes do not reach 2 omega*).  The
     partial spectrum's own upper half would bias D0, and omega* with it, low: by 5-20 % at
     dphi = 1e-5 .. 1e-3 (3D, N = 1024, docs/reproduction.md)."""
-    from parjam import kpm, observables
-
-    COUNTERS["kpm"] += 1
     res = kpm.compute(comm, system, kind, **KPM_PLATEAU)
     d0, _, window = kpm.dos_summary(res)
     return d0, observables.omega_star(omega, system.n_modes, d0), window
 
 
 def moduli_record(comm, pack):
-    from parjam import moduli
-
-    COUNTERS["moduli"] += 1
     mod = moduli.compute(pack, comm)
     rec = {k: v for k, v in mod.summary().items() if v is not None and np.isscalar(v)}
     rec["stiffness"] = mod.stiffness
@@ -123,9 +107,6 @@ def moduli_record(comm, pack):
 
 
 def softmodes_record(comm, pack, opts):
-    from parjam import softmodes as sm
-
-    COUNTERS["softmodes"] += 1
     planes = [sm.parse_cut(c, pack.d) for c in opts["cuts"]]
     if opts["subdivide"] is not None:
         planes += sm.subdivision_planes(opts["subdivide"], pack.d)
@@ -135,36 +116,3 @@ def softmodes_record(comm, pack, opts):
     rec.update(overlap=res.overlap, extension=res.e, trial_energy=res.trial_energy,
                extended_fraction=res.fractions, L=cs.L, n_planes=len(cs.planes))
     return rec
-
-
-def contact_fluctuations(pack, max_divisions):
-    """The seed's connectivity-fluctuation argument: split the box into m^d sub-boxes of side
-    l = L/m (m = 1..max_divisions), count in each the contacts among non-rattlers (by the
-    contact's midpoint) and the non-rattlers, and return l, the variance of the contact count
-    and the variance of the excess count dN_c = N_c - (z/2) N_box (fluctuation at fixed
-    particle number), over the sub-boxes."""
-    from parjam.network import analyze
-    from parjam.system import wrap
-
-    net = analyze(pack)
-    c = net.contacts
-    mid = wrap(pack.pos[c.i] + 0.5 * c.rij, pack.L)
-    act = pack.pos[~net.rattler]
-    half_z = 0.5 * net.z
-    rows = []
-    for m in range(1, max_divisions + 1):
-        if m > 1 and pack.L / m < 2.0 * pack.diam.max():
-            break
-
-        def box_index(x):
-            k = np.minimum((x / pack.L * m).astype(int), m - 1)
-            return np.ravel_multi_index(k.T, (m,) * pack.d)
-
-        nc = np.bincount(box_index(mid), minlength=m ** pack.d).astype(float)
-        npart = np.bincount(box_index(act), minlength=m ** pack.d).astype(float)
-        excess = nc - half_z * npart
-        rows.append((pack.L / m, nc.mean(), nc.var(), excess.var(), npart.mean()))
-    arr = np.array(rows)
-    return {"l": arr[:, 0], "mean_contacts": arr[:, 1], "var_contacts": arr[:, 2],
-            "var_excess": arr[:, 3], "mean_particles": arr[:, 4], "dz": net.dz,
-            "L": pack.L}

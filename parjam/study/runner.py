@@ -1,18 +1,29 @@
-"""The runner of a scene: its stages member by member over groups of ranks, each member's result
-stored atomically as it finishes; re-running skips what is done."""
+"""The runner of a scene: its stages member by member over groups of ranks (parjam.ranks), each
+member's result stored atomically as it finishes; re-running skips what is done.
 
-import argparse
+Layout of the output directory:
+
+    stages/<stage name>/member0000_<state>.h5   packings (pack stages, the ``parjam pack`` files)
+    stages/<stage name>/member0000.h5           one file per member of every analysis stage
+    summary-<system>-<key>.h5                    ensemble tables (parjam.study.summary)
+    stage.log                                    one line per member computed (never per skip)
+    figures/*.png                                with [observables.pictures]
+"""
+
 import collections
 import os
 import sys
 import time
 
+import h5py
 import numpy as np
 
-from parjam.errors import ParjamError
+from parjam import ensemble, env, io
+from parjam.errors import ParjamError, UnjammedError
+from parjam.fluctuations import contact_fluctuations
 from parjam.plot.spectra import dos_pictures
-from parjam.study.records import (COUNTERS, contact_fluctuations, moduli_record, network_record,
-                                  softmodes_record, spectrum_record)
+from parjam.ranks import member_groups
+from parjam.study.records import moduli_record, network_record, softmodes_record, spectrum_record
 from parjam.study.summary import summary_table, write_summary
 
 EXIT_INTERRUPTED = 5
@@ -20,21 +31,8 @@ EXIT_INTERRUPTED = 5
 
 # --------------------------------------------------------------------------- ranks and files
 
-def member_groups(world, members):
-    """min(members, ranks) groups of ranks; member m belongs to group m % groups."""
-    from parjam import env
-
-    mpi = world.tompi4py()
-    ngroups = min(members, mpi.Get_size())
-    color = mpi.Get_rank() * ngroups // mpi.Get_size()
-    sub = mpi.Split(color, mpi.Get_rank())
-    return env.petsc().Comm(sub), [m for m in range(members) if m % ngroups == color]
-
-
 def write_part(path, data, attrs=None):
     """{state: {name: array or scalar}} -> /<state>/<name>, atomically."""
-    from parjam import io
-
     with io.atomic_h5(path) as f:
         for key, val in (attrs or {}).items():
             f.attrs[key] = val
@@ -48,29 +46,18 @@ def write_part(path, data, attrs=None):
 
 
 def read_part(path):
-    import h5py
-
+    """A member's file of an analysis stage as {state: {name: value}} (write_part's inverse)."""
     with h5py.File(path, "r") as f:
         return {state: {**{k: v[()] for k, v in f[state].items()}, **dict(f[state].attrs)}
                 for state in f}
 
 
-# --------------------------------------------------------------------------- per-state work
-
-def pack_args(scene, system, out):
-    """The parjam.ensemble.pack_member arguments of a scene's packing stage."""
-    p = scene.protocol
-    return argparse.Namespace(
-        dim=system.d, n=system.n, alpha=system.alpha, dispersity=system.dispersity,
-        ratio=system.ratio, phi=None, phi_start=p.phi_start or {2: 0.86, 3: 0.66}[system.d],
-        seed=scene.seed, ftol=p.ftol, energy_window=tuple(p.energy_window), no_phic_file=False,
-        pressure=p.pressure, dphi=p.dphi, ladder=p.ladder, out=out, members=scene.members,
-        quiet=False, phic_method=p.phic_method)
-
-
 # --------------------------------------------------------------------------- the runner
 
 class Runner:
+    """A scene's stages (parjam.study.plan) run into ``out``.  ``counts`` tells what this
+    process computed: members per stage kind and summaries written (nothing on a re-run)."""
+
     def __init__(self, scene, stages, out, world, progress, stop_after=None):
         self.scene, self.stages, self.out = scene, stages, out
         self.world, self.mpi = world, world.tompi4py()
@@ -117,8 +104,6 @@ class Runner:
 
     # the loop ----------------------------------------------------------------
     def run(self):
-        from parjam import env
-
         PETSc = env.petsc()
         if self.mpi.Get_rank() == 0:
             os.makedirs(self.out, exist_ok=True)
@@ -135,7 +120,7 @@ class Runner:
                 if st.kind == "summary":
                     # a member's stages all run in the same group, so groups only wait for each
                     # other here, where the summary reads every member
-                    if self.mpi.allreduce(stopped, op=_lor()):
+                    if self.mpi.allreduce(int(stopped)) > 0:
                         self.progress("interrupted: re-run the same command to resume")
                         return EXIT_INTERRUPTED
                     self.summarise(st)
@@ -174,19 +159,12 @@ class Runner:
         return False
 
     def compute_member(self, st, m, comm):
-        from parjam import io
-
         if st.kind == "pack":
-            from parjam.ensemble import pack_member
-
-            from parjam.errors import UnjammedError
-
-            COUNTERS["pack"] += 1
-            args = pack_args(self.scene, st.system, self.stage_dir(st))
+            protocol = self.scene.packing_protocol(st.system, self.stage_dir(st))
             sub = self.progress.sub(f"pack {st.system.name} member {m + 1}: ")
             sub.enabled = False  # the bisection's lines would drown the stage progress
             try:
-                pack_member(args, m, comm, sub)
+                ensemble.pack_member(protocol, m, comm, sub)
             except UnjammedError as exc:  # rare: the member is left out, the ensemble goes on
                 if comm.getRank() == 0:
                     with open(self.failed_path(st.system, m), "w") as fh:
@@ -222,7 +200,6 @@ class Runner:
         if st.kind == "softmodes":
             return softmodes_record(comm, pack, st.params)
         if st.kind == "fluctuations":
-            COUNTERS["fluctuations"] += 1
             return contact_fluctuations(pack, st.params["max_divisions"])
         raise ValueError(f"unknown stage kind {st.kind}")
 
@@ -232,7 +209,7 @@ class Runner:
         path = self.summary_path(st)
         self.summaries[st.system.name] = path
         if self.mpi.Get_rank() == 0 and not os.path.isfile(path):
-            COUNTERS["summary"] += 1
+            self.counts["summary"] += 1
             by_kind = {}
             for dep in self.stages:
                 if dep.key in st.deps and dep.kind != "pack":
@@ -258,9 +235,3 @@ class Runner:
         dpi = self.scene.observables["pictures"]["dpi"]
         for name, path in self.summaries.items():
             dos_pictures(path, os.path.join(fig_dir, name), dpi)
-
-
-def _lor():
-    from mpi4py import MPI
-
-    return MPI.LOR

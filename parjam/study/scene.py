@@ -14,12 +14,12 @@ import os
 import tomllib
 from dataclasses import dataclass, field
 
+from parjam import softmodes, solver_choice
 from parjam.errors import ParjamError
-
-MATRICES = ("full", "relaxed", "stress")
-DISPERSITIES = ("mono", "bi", "poly")
-DENSE_MAX_DOF = 8000  # whole spectrum by dense LAPACK up to this many degrees of freedom
-SMALL_DOF = 600  # the k lowest modes by dense LAPACK below this (cheaper than a factorisation)
+from parjam.packing import DISPERSITIES
+from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL, DEFAULT_RATIO,
+                             LADDERS, PHIC_METHODS, PackingProtocol)
+from parjam.spectrum import MATRICES
 
 
 # --------------------------------------------------------------------------- the parsed scene
@@ -47,8 +47,8 @@ class Protocol:
     dphi: list = None
     pressure: list = None
     ladder: str = "compress"
-    ftol: float = 1e-13
-    energy_window: tuple = (1e-16, 2e-16)
+    ftol: float = DEFAULT_FTOL
+    energy_window: tuple = DEFAULT_ENERGY_WINDOW
     phi_start: float = None
     phic_method: str = "bisect"  # or "extrapolate": no phi_c state is written (parjam.ensemble)
 
@@ -90,6 +90,16 @@ class Scene:
     seed: int
     observables: dict  # name -> dict of validated options
     solver: dict = field(default_factory=dict)
+
+    def packing_protocol(self, system, out):
+        """The packing protocol (parjam.protocol) of one system's pack stage, written to
+        ``out``: what ``parjam pack`` with the same settings would make."""
+        p = self.protocol
+        return PackingProtocol(
+            dim=system.d, n=system.n, out=out, alpha=system.alpha, dispersity=system.dispersity,
+            ratio=system.ratio, seed=self.seed, members=self.members, dphi=p.dphi,
+            pressure=p.pressure, ladder=p.ladder, phic_method=p.phic_method,
+            phi_start=p.phi_start, ftol=p.ftol, energy_window=p.energy_window)
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -255,8 +265,8 @@ def _systems(raw, path):
             if isinstance(n, bool) or not isinstance(n, int) or not 16 <= n <= 50_000_000:
                 t.fail("N", f"must be integers in [16, 5e7], got {n!r}")
         disp = t.str("dispersity", "bi" if d == 2 else "mono", DISPERSITIES)
-        ratio = t.float("ratio", 1.4, lo=1.0, hi=10.0)
-        alpha = t.float("alpha", 2.0, lo=1.0, lo_open=True, hi=10.0)
+        ratio = t.float("ratio", DEFAULT_RATIO, lo=1.0, hi=10.0)
+        alpha = t.float("alpha", DEFAULT_ALPHA, lo=1.0, lo_open=True, hi=10.0)
         name = t.str("name", None)
         t.done()
         for n in ns:
@@ -279,15 +289,15 @@ def _protocol(raw, path):
     pressure = t.numbers("pressure", None, lo=0.0, hi=10.0, lo_open=True)
     if (dphi is None) == (pressure is None):
         t.fail("dphi", "give exactly one of dphi = [...] (a ladder) or pressure = [...]")
-    ladder = t.str("ladder", "compress", ("compress", "decompress"))
+    ladder = t.str("ladder", "compress", LADDERS)
     if pressure is not None and t.has("ladder"):
         t.fail("ladder", "applies to a dphi ladder, not to target pressures")
-    ftol = t.float("ftol", 1e-13, lo=0.0, hi=1e-3, lo_open=True)
-    window = t.numbers("energy_window", [1e-16, 2e-16], lo=0.0, lo_open=True)
+    ftol = t.float("ftol", DEFAULT_FTOL, lo=0.0, hi=1e-3, lo_open=True)
+    window = t.numbers("energy_window", list(DEFAULT_ENERGY_WINDOW), lo=0.0, lo_open=True)
     if len(window) != 2 or not window[0] < window[1]:
         t.fail("energy_window", f"must be [LOW, HIGH] with 0 < LOW < HIGH, got {window}")
     phi_start = t.float("phi_start", None, lo=0.05, hi=1.5)
-    phic_method = t.str("phic_method", "bisect", ("bisect", "extrapolate"))
+    phic_method = t.str("phic_method", "bisect", PHIC_METHODS)
     t.done()
     vals = dphi if dphi is not None else pressure
     if len({f"{v:.1e}" for v in vals}) != len(vals):
@@ -300,8 +310,9 @@ def _protocol(raw, path):
 def _solver(raw, path):
     t = _Table(raw, "solver", path)
     out = {"tol": t.float("tol", 1e-10, lo=0.0, hi=1e-2, lo_open=True),
-           "dense_max_dof": t.int("dense_max_dof", DENSE_MAX_DOF, lo=1, hi=40_000),
-           "small_dof": t.int("small_dof", SMALL_DOF, lo=0)}
+           "dense_max_dof": t.int("dense_max_dof", solver_choice.WHOLE_MAX_DOF, lo=1,
+                                  hi=40_000),
+           "small_dof": t.int("small_dof", solver_choice.PARTIAL_DENSE_MAX_DOF, lo=0)}
     t.done()
     return out
 
@@ -423,15 +434,13 @@ def _obs_trans(t, protocol, ladder, lowest, min_modes):
 
 
 def _obs_softmodes(t, protocol, ladder, lowest, min_modes):
-    from parjam import softmodes as sm
-
     cuts = t.strings("cuts", None)
     sub = t.int("subdivide", None, lo=1, hi=1000)
     if cuts is None and sub is None:
         cuts = ["x=0.5"]
     for c in cuts or []:
         try:
-            sm.parse_cut(c, 3)
+            softmodes.parse_cut(c, 3)
         except ParjamError as exc:
             t.fail("cuts", str(exc).replace("--cut ", ""))
     return {"cuts": cuts or [], "subdivide": sub,
