@@ -86,10 +86,12 @@ def pair_forces(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
     if lib is not None:
         return lib.parjam_pair_forces(len(pi), pi, pj, pos, diam, L, pos.shape[1], alpha, eps,
                                       lo, hi, out)
-    return _pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out)
+    return pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out)
 
 
-def _pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
+def pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
+    """The numpy version of the compiled pair-force kernel (same arguments, same result): used
+    when the C kernel is not built, and as its reference in the tests."""
     rij = pair_separation(pos[pi], pos[pj], L)
     r = np.sqrt(np.einsum("ij,ij->i", rij, rij))
     sigma = 0.5 * (diam[pi] + diam[pj])

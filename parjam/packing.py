@@ -135,7 +135,7 @@ class Jammer:
         resume = self._resume(call) if ck is not None else None
         hook = ck.snapshot(call, self.ff, self.pack.L, calls_before) if ck is not None else None
         try:
-            res = minimize.minimise(self.ff, self.settings.ftol, e_stop,
+            res = minimize.minimize(self.ff, self.settings.ftol, e_stop,
                                    fire_rel=self.settings.fire_rel, progress=self._inner,
                                    snapshot=hook, resume=resume)
         except ValueError as exc:  # e.g. a box too small for the neighbour search

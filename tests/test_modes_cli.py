@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 import pytest
 
-from parjam import cli, env, io, modes_io, network, solver_choice, spectrum
+from parjam import cli, env, io, modes_io, network, solver_choice
 from parjam.packing import random_packing
 from parjam.system import Packing
 

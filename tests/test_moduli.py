@@ -1,4 +1,4 @@
-"""Elastic moduli by linear response (parjam.moduli, issue 8): against a dense pseudo-inverse,
+"""Elastic moduli by linear response (parjam.moduli): against a dense pseudo-inverse,
 against finite strains of the periodic box followed by re-minimisation, 1 rank vs 2 ranks,
 the dphi scalings and bad input.  Runs serially and under ``mpirun -n 2``."""
 

@@ -323,8 +323,6 @@ def test_solver_policy_whole_spectrum_and_limits():
 def test_matrices_are_the_three_terms_of_eq_1(jammed):
     """Every name in MATRICES is a matrix of Eq. (1) that the commands offer, and the full one
     is the sum of the other two, D = M + M'."""
-    from parjam import cli
-
     assert set(spectrum.MATRICES) == {"full", "relaxed", "stress"}
     full, relaxed, stress = (spectrum.dense_matrix(jammed, kind) for kind in
                              ("full", "relaxed", "stress"))

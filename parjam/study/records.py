@@ -111,7 +111,7 @@ def softmodes_record(comm, pack, opts):
     if opts["subdivide"] is not None:
         planes += sm.subdivision_planes(opts["subdivide"], pack.d)
     cs = sm.prepare(pack, list(dict.fromkeys(planes)), opts["allow_hyperstatic"])
-    res = sm.analyse(comm, cs, opts["e0"], opts["bins"])
+    res = sm.analyze(comm, cs, opts["e0"], opts["bins"])
     rec = {k: (np.nan if v is None else v) for k, v in res.summary().items()}
     rec.update(overlap=res.overlap, extension=res.e, trial_energy=res.trial_energy,
                extended_fraction=res.fractions, L=cs.L, n_planes=len(cs.planes))

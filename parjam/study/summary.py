@@ -3,7 +3,10 @@
 import os
 import warnings
 
+import h5py
 import numpy as np
+
+from parjam import io, observables
 
 # --------------------------------------------------------------------------- ensemble summary
 
@@ -18,8 +21,6 @@ SCALARS = {"network": ("phi", "phi_c", "z", "dz", "dz_iso", "pressure", "N_activ
 def ensemble_dos(records, bins, log=False, omega_min=None):
     """D(omega) per mode of each member on common bins up to the lowest of the members' top
     frequencies (parjam.observables), averaged with standard errors."""
-    from parjam import observables
-
     omegas = [r["frequency"][r["frequency"] > 0] for r in records]
     top = min(float(w.max()) for w in omegas)
     lo = omega_min
@@ -35,8 +36,6 @@ def ensemble_dos(records, bins, log=False, omega_min=None):
 def write_summary(path, st, by_kind, scene, failed=()):
     """/<state>/<kind>/<quantity>: per-member values (axis 0 = member), mean and error, and for
     spectra the ensemble D(omega) and the pooled per-mode sums."""
-    from parjam import io, observables
-
     obs = scene.observables
     dos_opts = obs.get("dos", {"bins": 40, "log_bins": False, "omega_min": None})
     with io.atomic_h5(path) as f:
@@ -106,8 +105,6 @@ def _spectrum_summary(g, recs, ids, opts):
 
 def read_summary(path):
     """A summary file as nested dicts: {state: {kind: {quantity: array}}} plus attrs."""
-    import h5py
-
     def walk(g):
         return {k: (walk(v) if isinstance(v, h5py.Group) else v[()]) for k, v in g.items()}
 
