@@ -1,5 +1,5 @@
 """``parjam plot`` (parjam.commands.plot) and the paper's figures and fits (parjam.plot.paper,
-parjam.plot.fits): known power laws recovered with bootstrap errors, a synthetic results
+parjam.fits): known power laws recovered with bootstrap errors, a synthetic results
 directory and a tiny real ``parjam run`` drawn to valid PNGs of the expected size, the single
 result files of other commands, and bad input (one-line error, exit 2, no PNG, no temporary
 file).  Serially and under mpirun -n 2 (rank 0 draws, the other ranks return the same code)."""
@@ -17,7 +17,7 @@ import pytest
 from conftest import DATA, ROOT, subprocess_env
 from parjam import cli, env
 from parjam.plot import atomic_png, paper
-from parjam.plot.fits import bootstrap, fit_eq33, fit_power
+from parjam.fits import bootstrap, fit_eq33, fit_power
 
 MPI = env.petsc().COMM_WORLD.tompi4py()
 RANK = MPI.Get_rank()

@@ -4,7 +4,7 @@ A results directory holds one subdirectory per bundled scene (``SCENES``: ``pape
 ``paper-2d``, ``paper-3d-10x``, ``hertz-3d``, ``softmodes-3d``, each the ``--out`` of
 ``parjam run``), or the summary files of one ``parjam run`` directly.  Each figure of
 ``FIGURES`` uses the systems of its group that hold the data it needs (its ``needs``), fits
-its laws (parjam.plot.fits) into a ``fits`` dict and is drawn to ``repro_<name>.png``.
+its laws (parjam.fits) into a ``fits`` dict and is drawn to ``repro_<name>.png``.
 ``parjam plot RESULTS --img DIR`` and ``scripts/reproduce.py`` call :func:`reproduce`.
 
 Why one file of ~530 lines: every figure is a small function next to the laws it fits, and the
@@ -22,7 +22,7 @@ import numpy as np
 
 from parjam.errors import ParjamError
 from parjam.plot import atomic_png, pyplot
-from parjam.plot.fits import fit_eq33, fit_power, law, log_slope
+from parjam.fits import fit_eq33, fit_power, law, log_slope
 from parjam.study.summary import read_summary
 
 #: figure group -> the bundled scenes (subdirectories of a results directory) that feed it
