@@ -23,9 +23,10 @@ import json
 import os
 import time
 
+import h5py
 import numpy as np
 
-from parjam import __version__, io
+from parjam import __version__, faults, io
 from parjam.errors import ParjamError
 from parjam.minimize import FireState, MinimiseState, MinResult
 
@@ -121,8 +122,6 @@ class Checkpoint:
 
     def write(self):
         """Write the checkpoint now (group rank 0; collective: every rank of the group calls it)."""
-        from parjam import faults
-
         if self.mpi.Get_rank() == 0:
             try:
                 write_file(self.path, self.params, self.done, self.pending)
@@ -171,8 +170,6 @@ def write_file(path, params, done, pending):
 
 
 def _read(path):
-    import h5py
-
     with h5py.File(path, "r") as f:
         if int(f.attrs["format"]) != FORMAT:
             raise ValueError(f"format {f.attrs['format']} (this parjam reads {FORMAT})")

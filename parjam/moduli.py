@@ -154,25 +154,6 @@ def min_shear_modulus(Bt):
     return softest_shear(Bt)[0]
 
 
-def power_law_fit(x, Y, n_boot=500, seed=0):
-    """Exponent of mean(Y, members) ~ x^s by least squares in log-log, with a bootstrap error
-    over members (rows of Y).  Returns (s, standard error); nan if a mean is not positive.
-    NaN entries (members left out at some x, e.g. unstable ones) are skipped in the means."""
-    Y = np.asarray(Y, dtype=float)
-    lx = np.log(np.asarray(x, dtype=float))
-
-    def slope(rows):
-        with np.errstate(all="ignore"):
-            m = np.nanmean(Y[rows], axis=0) if np.isnan(Y).any() else Y[rows].mean(axis=0)
-        if not np.isfinite(m).all():
-            return np.nan
-        return np.polyfit(lx, np.log(m), 1)[0] if (m > 0).all() else np.nan
-
-    rng = np.random.default_rng(seed)
-    boots = [slope(rng.integers(0, len(Y), len(Y))) for _ in range(n_boot)]
-    return float(slope(np.arange(len(Y)))), float(np.nanstd(boots))
-
-
 @dataclass
 class Moduli:
     """Linear-response elastic constants of one packing (all tensors d x d x d x d)."""

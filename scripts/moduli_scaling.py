@@ -111,9 +111,15 @@ def table(rows, key, xs, members):
     return Y
 
 
-def fits(rows, gfit_min):
-    from parjam.moduli import power_law_fit
+def power_law_fit(x, Y):
+    """(exponent, bootstrap error) of mean(Y) ~ x^s over members (parjam.fits.fit_power)."""
+    from parjam.fits import fit_power
 
+    f = fit_power(x, Y)
+    return f["exponent"], f["exponent_err"]
+
+
+def fits(rows, gfit_min):
     xs = sorted({r["dphi"] for r in rows})
     members = sorted({r["member"] for r in rows}, key=str)
     alpha = rows[0]["alpha"]

@@ -7,7 +7,9 @@ import os
 import numpy as np
 import pytest
 
+from parjam import spectrum
 from parjam.errors import ParjamError
+from parjam.fits import fit_power
 from parjam.study import plan as study_plan
 from parjam.study import runner as runmod
 from parjam.study import scene as sc
@@ -139,6 +141,13 @@ def test_plan_picks_the_cheapest_solver():
     assert {p["solver"] for p in st[2].params.values()} == {"sinvert"}
     st = study_plan.plan(sc.loads(scene_text("omega_star = { window = [0, 0.2] }", big)))
     assert {p["solver"] for p in st[2].params.values()} == {"slice"}
+    # between them the one policy of parjam modes --method auto (parjam.solver_choice)
+    mid = BASE.replace("N = 64", "N = 300")
+    for k, expect in ((10, "sinvert"), (200, "dense")):
+        st = study_plan.plan(sc.loads(scene_text(f"lowest = {{ k = {k} }}", mid)))
+        assert spectrum.choose_method("auto", 900, None, k=k, n_modes=897) == expect
+        assert {p["solver"] for p in st[2].params.values()} == {
+            "dense-eigh" if expect == "dense" else expect}
     # the whole spectrum of a large system is refused before any work
     with pytest.raises(ParjamError, match="dense_max_dof"):
         study_plan.plan(sc.loads(scene_text("dos = true\n[solver]\ndense_max_dof = 1000\n", big)))
@@ -319,27 +328,23 @@ def law_tables(shared_tmp, world, name, labels, **fmt):
 def test_small_paper_scene_exponents(shared_tmp, world):
     """The paper's laws on a tiny ensemble (3D, N = 128): dz ~ p^(1/2) (Eq. 22) and
     omega* ~ dz in the relaxed system (Fig. "sans"), within generous bounds."""
-    from parjam.moduli import power_law_fit
-
     p, dz, ws = law_tables(shared_tmp, world, "laws", ["dphi1.0e-03", "dphi1.0e-02", "dphi1.0e-01"],
                            system="", protocol="dphi = [1e-4, 1e-3, 1e-2, 1e-1]", seed=11)
-    slope_dz, _ = power_law_fit(p.mean(axis=0), dz)
+    slope_dz = fit_power(p.mean(axis=0), dz, n_boot=100)["exponent"]
     assert 0.3 < slope_dz < 0.75, slope_dz
-    slope_w, _ = power_law_fit(dz.mean(axis=0), ws)
+    slope_w = fit_power(dz.mean(axis=0), ws, n_boot=100)["exponent"]
     assert 0.6 < slope_w < 1.5, slope_w
 
 
 def test_small_hertz_scene_exponents(shared_tmp, world):
     """Hertzian contacts (alpha = 5/2) on a tiny ensemble at target pressures (3D, N = 128):
     dz ~ p^(1/3), not the harmonic p^(1/2), and omega* ~ p^(1/2) (Section VI of the paper)."""
-    from parjam.moduli import power_law_fit
-
     p, dz, ws = law_tables(shared_tmp, world, "hertz-laws", ["p1.0e-04", "p1.0e-03", "p1.0e-02"],
                            system="alpha = 2.5", protocol="pressure = [1e-4, 1e-3, 1e-2]",
                            seed=12)
-    slope_dz, _ = power_law_fit(p.mean(axis=0), dz)
+    slope_dz = fit_power(p.mean(axis=0), dz, n_boot=100)["exponent"]
     assert 0.2 < slope_dz < 0.45, slope_dz  # 1/3; harmonic would give 1/2
-    slope_w, _ = power_law_fit(p.mean(axis=0), ws)
+    slope_w = fit_power(p.mean(axis=0), ws, n_boot=100)["exponent"]
     assert 0.3 < slope_w < 0.75, slope_w  # 1/2
 
 
