@@ -18,14 +18,15 @@ from parjam.errors import ParjamError, UnjammedError
 from parjam.forces import ForceField
 from parjam.logstage import log_stage
 from parjam.network import analyze
-from parjam.protocol import DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL, DEFAULT_PHI_START
+from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW,
+                             DEFAULT_FTOL, DEFAULT_PHI_START, DEFAULT_RATIO)
 from parjam.system import Packing, sphere_volume
 
 DISPERSITIES = ("mono", "bi", "poly")
 PHI_MAX = {2: 0.99, 3: 0.9}  # the phi_c search gives up above these (nothing jams so late)
 
 
-def diameters(n, dispersity="mono", ratio=1.4, rng=None):
+def diameters(n, dispersity="mono", ratio=DEFAULT_RATIO, rng=None):
     """Diameters with the smallest equal to 1: mono; bi (50:50, large/small = ratio); poly
     (uniform between 1 and ratio)."""
     if dispersity == "mono":
@@ -45,7 +46,8 @@ def member_rng(seed, member):
     return np.random.default_rng(np.random.SeedSequence([int(seed), int(member)]))
 
 
-def random_packing(d, n, phi, alpha=2.0, dispersity="mono", ratio=1.4, rng=None):
+def random_packing(d, n, phi, alpha=DEFAULT_ALPHA, dispersity="mono", ratio=DEFAULT_RATIO,
+                   rng=None):
     """Uniform random positions at volume fraction phi: an infinite-temperature configuration."""
     rng = rng if rng is not None else np.random.default_rng()
     diam, species = diameters(n, dispersity, ratio, rng)
@@ -350,8 +352,8 @@ class Jammer:
         self.ff.destroy()
 
 
-def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=1.4, alpha=2.0,
-                comm=None, phi_start=None, settings=None):
+def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=DEFAULT_RATIO,
+                alpha=DEFAULT_ALPHA, comm=None, phi_start=None, settings=None):
     """Packings of one configuration at phi_c + dphi for each dphi (ascending), and phi_c.
 
     The same (seed, member) gives the same configuration as ``parjam pack``.  ``comm`` defaults
@@ -359,7 +361,7 @@ def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=1.4, alpha
     """
     PETSc = env.petsc()
     comm = PETSc.COMM_SELF if comm is None else comm
-    dispersity = dispersity or ("bi" if d == 2 else "mono")
+    dispersity = dispersity or DEFAULT_DISPERSITY[d]
     phi0 = phi_start or DEFAULT_PHI_START[d]
     pack = random_packing(d, n, phi0, alpha, dispersity, ratio, member_rng(seed, member))
     jam = Jammer(comm, pack, settings)

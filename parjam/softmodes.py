@@ -990,8 +990,8 @@ def gather_columns(comm, V, cols, root=0):
 
 
 def write(comm, path, res, vectors=False, prov=None, block=64):
-    """/softmodes/* (docs/file-format.md), written atomically on rank 0; the basis only with ``vectors``
-    (gathered to rank 0 in blocks of columns)."""
+    """/softmodes/* (docs/file-format.md), written atomically on rank 0; the basis only with
+    ``vectors`` (gathered to rank 0 in blocks of columns)."""
     rank = comm.getRank()
     if rank != 0:
         for start in range(0, res.n_soft, block) if vectors else []:

@@ -29,7 +29,7 @@ from parjam.study.summary import summary_table, write_summary
 EXIT_INTERRUPTED = 5
 
 
-# --------------------------------------------------------------------------- ranks and files
+# --------------------------------------------------------------------------- member files
 
 def write_part(path, data, attrs=None):
     """{state: {name: array or scalar}} -> /<state>/<name>, atomically."""

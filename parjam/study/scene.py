@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 from parjam import softmodes, solver_choice
 from parjam.errors import ParjamError
 from parjam.packing import DISPERSITIES
-from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL, DEFAULT_RATIO,
-                             LADDERS, PHIC_METHODS, PackingProtocol)
+from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
+                             DEFAULT_RATIO, LADDERS, PHIC_METHODS, PackingProtocol)
 from parjam.spectrum import MATRICES
 
 
@@ -264,7 +264,7 @@ def _systems(raw, path):
         for n in ns:
             if isinstance(n, bool) or not isinstance(n, int) or not 16 <= n <= 50_000_000:
                 t.fail("N", f"must be integers in [16, 5e7], got {n!r}")
-        disp = t.str("dispersity", "bi" if d == 2 else "mono", DISPERSITIES)
+        disp = t.str("dispersity", DEFAULT_DISPERSITY[d], DISPERSITIES)
         ratio = t.float("ratio", DEFAULT_RATIO, lo=1.0, hi=10.0)
         alpha = t.float("alpha", DEFAULT_ALPHA, lo=1.0, lo_open=True, hi=10.0)
         name = t.str("name", None)
