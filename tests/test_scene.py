@@ -7,9 +7,11 @@ import os
 import numpy as np
 import pytest
 
-from parjam import spectrum
+from parjam import cli, spectrum
+from parjam.commands import pack as pack_command
 from parjam.errors import ParjamError
 from parjam.fits import fit_power
+from parjam.protocol import PackingProtocol
 from parjam.study import plan as study_plan
 from parjam.study import runner as runmod
 from parjam.study import scene as sc
@@ -95,6 +97,20 @@ def test_parser_defaults_and_lists():
 
 
 EXTRAP = BASE.replace("[ensemble]", "phic_method = 'extrapolate'\n[ensemble]")
+
+
+def test_scene_and_pack_build_the_same_packing_protocol():
+    """A scene and ``parjam pack`` with the same settings make the same PackingProtocol: the
+    defaults both leave unsaid (phi_start, ftol, energy window, ratio, alpha, ladder) agree."""
+    for base, extra in ((BASE, []), (EXTRAP, ["--phic-method", "extrapolate"])):
+        args = cli.build_parser().parse_args(
+            ["pack", "--dim", "3", "--n", "64", "--dphi", "1e-3", "1e-2", "--members", "2",
+             "--seed", "3", "--out", "x", "--checkpoint-every", "0"] + extra)
+        pack_command.validate(args)
+        scene = sc.loads(scene_text("contacts = true", base))
+        assert PackingProtocol.from_namespace(args) == scene.packing_protocol(scene.systems[0],
+                                                                              "x")
+    assert scene.packing_protocol(scene.systems[0], "x").phi_start == 0.66
 
 
 def test_extrapolated_phi_c_has_no_phi_c_state_and_its_own_keys():
