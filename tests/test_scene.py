@@ -185,8 +185,6 @@ def test_stage_keys_follow_their_inputs():
 
 
 def test_dry_run_prints_the_plan(tmp_path, capsys, world):
-    from parjam import cli
-
     path = tmp_path / f"s{world.getRank()}.toml"
     path.write_text(scene_text("dos = true\ntrans = { at = [1e-3] }"))
     assert cli.main(["run", str(path), "--dry-run"]) == 0
@@ -488,7 +486,7 @@ def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world
 def test_extrapolated_scene_matches_the_pack_command(shared_tmp, world):
     """A scene with phic_method = "extrapolate" packs exactly what ``parjam pack --phic-method
     extrapolate`` packs (same phi_c, phi and pressure per member)."""
-    from parjam import cli, io, network
+    from parjam import io, network
 
     out = os.path.join(shared_tmp, "extrap-scene")
     code, runner = run_scene(scene_text("contacts = true\n", EXTRAP), out, world)
