@@ -4,6 +4,7 @@ the transverse/longitudinal ratio eps_perp/eps_par per mode (Fig. "trans") and p
 import numpy as np
 
 from parjam.plot import pyplot
+from parjam.study.summary import read_summary
 
 
 def _label(spec):
@@ -50,9 +51,8 @@ def ensemble_dos_figure(omega, density, error, path, label="ensemble", omega_sta
 
 
 def dos_pictures(path, stem, dpi):
-    """D(omega) of every matrix, the states overlaid (log-linear, as the paper's figures)."""
-    from parjam.study.summary import read_summary
-
+    """D(omega) of every matrix, the states overlaid (log-linear, as the paper's figures), from
+    a scene's summary file (parjam.study.summary) to STEM-dos-MATRIX.png."""
     s = read_summary(path)
     states = [x.decode() for x in s["attrs"]["states"]]
     kinds = sorted({k for lab in states if lab in s for k in s[lab].get("spectrum", {})})
