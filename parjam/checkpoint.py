@@ -23,9 +23,10 @@ import json
 import os
 import time
 
+import h5py
 import numpy as np
 
-from parjam import __version__, io
+from parjam import __version__, faults, io
 from parjam.errors import ParjamError
 from parjam.minimize import FireState, MinimiseState, MinResult
 
@@ -102,10 +103,10 @@ class Checkpoint:
                           "force_calls": int(force_calls)})
         self.pending = None
         if self._due():
-            self._write()
+            self.write()
 
     def snapshot(self, call, ff, L, calls_before):
-        """A hook for ``minimize.minimise``: record minimisation ``call`` in progress, when due
+        """A hook for ``minimize.minimize``: record minimisation ``call`` in progress, when due
         (collective: every rank of the group calls it); ``calls_before`` is ff's force-evaluation
         count when the minimisation began."""
 
@@ -115,16 +116,15 @@ class Checkpoint:
             pos = np.array(ff.gather())  # before make_state(), which reuses the gather buffer
             self.pending = {"call": call, "pos": pos, "L": float(L), "state": make_state(),
                             "force_calls": ff.n_force_calls - calls_before}
-            self._write()
+            self.write()
 
         return hook
 
-    def _write(self):
-        from parjam import faults
-
+    def write(self):
+        """Write the checkpoint now (group rank 0; collective: every rank of the group calls it)."""
         if self.mpi.Get_rank() == 0:
             try:
-                _write(self.path, self.params, self.done, self.pending)
+                write_file(self.path, self.params, self.done, self.pending)
             except OSError as exc:  # e.g. a full disk: end every rank with one line
                 raise ParjamError(f"cannot write checkpoint {self.path}: {exc}",
                                   collective=False) from None
@@ -145,7 +145,8 @@ def remove_empty_directory(out):
         pass
 
 
-def _write(path, params, done, pending):
+def write_file(path, params, done, pending):
+    """A checkpoint file: the run parameters, the finished minimisations and the one in progress."""
     with io.atomic_h5(path) as f:
         f.attrs["format"] = FORMAT
         f.attrs["params"] = params
@@ -169,8 +170,6 @@ def _write(path, params, done, pending):
 
 
 def _read(path):
-    import h5py
-
     with h5py.File(path, "r") as f:
         if int(f.attrs["format"]) != FORMAT:
             raise ValueError(f"format {f.attrs['format']} (this parjam reads {FORMAT})")

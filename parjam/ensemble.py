@@ -7,12 +7,7 @@ import numpy as np
 
 from parjam import io
 from parjam.network import analyze
-from parjam.packing import JamSettings, Jammer, random_packing
-
-
-def member_rng(seed, member):
-    """Independent, reproducible stream for member m, whatever the number of ranks."""
-    return np.random.default_rng(np.random.SeedSequence([int(seed), int(member)]))
+from parjam.packing import JamSettings, Jammer, member_rng, random_packing
 
 
 def settings_from(args):
@@ -122,7 +117,8 @@ def member_checkpoint(args, member, comm, progress, run_params):
 
 def pack_member(args, member, comm, progress, run_params=None):
     """Compute, write (group rank 0) and summarise the states of one ensemble member; then its
-    manifest record (parjam.manifest), so that a restarted run skips it."""
+    manifest record (parjam.manifest), so that a restarted run skips it.  ``args`` is the
+    member's parjam.protocol.PackingProtocol (from ``parjam pack`` or a scene)."""
     from parjam import faults, manifest
 
     t0 = time.time()

@@ -163,10 +163,12 @@ def pair_forces(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
         return lib.parjam_pair_forces(len(pi), pi, pj, pos, diam, L, pos.shape[1], alpha, eps,
                                       lo, hi, out)
     _fallback()
-    return _pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out)
+    return pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out)
 
 
-def _pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
+def pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
+    """The numpy version of the compiled pair-force kernel (same arguments, same result): used
+    when the C kernel is not built, and as its reference in the tests."""
     rij = pair_separation(pos[pi], pos[pj], L)
     r = np.sqrt(np.einsum("ij,ij->i", rij, rij))
     sigma = 0.5 * (diam[pi] + diam[pj])
@@ -203,7 +205,7 @@ def fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi, 
         if stale2 > 0.0 and _max_disp2(x, ref, L) >= stale2:
             return 1
     if mode & FIRE_FORCES:
-        e = _pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, f)
+        e = pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, f)
         f2 = np.einsum("ij,ij->i", f, f)
         v2 = np.einsum("ij,ij->i", v, v)
         sums[:] = (e, np.vdot(f, v), f2.sum(), v2.sum(), f2.max(initial=0.0),

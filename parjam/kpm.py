@@ -41,9 +41,11 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 
-from parjam import env, observables
+from parjam import env, observables, spectrum
 from parjam.errors import ParjamError
+from parjam.logstage import log_stage
 
 CHUNK = 1 << 16  # entries per independently seeded chunk of a probe vector
 PROBES = ("rademacher", "gaussian")
@@ -86,8 +88,6 @@ def lanczos_ritz(A, v0, steps):
     """Extreme Ritz values of A from ``steps`` Lanczos steps from v0 (plain three-term recurrence;
     the extreme Ritz values converge first) and the residual norms |beta_m s_m| of those Ritz
     pairs, each bounding the distance from its Ritz value to an eigenvalue."""
-    import scipy.linalg
-
     q = v0.copy()
     q.scale(1.0 / q.norm())
     q_prev = q.duplicate()
@@ -273,11 +273,10 @@ def density_x(mu, x):
     return s / (np.pi * np.sqrt(1.0 - x * x))
 
 
-def moments(A, d, n_modes, kind="full", n_moments=256, n_probes=16, seed=0,
+def moments(A, d, n_modes, kind="full", n_moments=256, n_probes=16, *, seed=0,
             probe_kind="rademacher", bounds=None, lanczos_steps=40, margin=1e-3, progress=None):
     """KPM moments of the spectral density of the distributed matrix A (non-rattler rows, blocks
     of d; translations projected out).  ``bounds`` = (a, b) skips the Lanczos estimate."""
-    from parjam.packing import log_stage
 
     if n_moments < 2:
         raise ParjamError(f"--moments must be >= 2, got {n_moments}")
@@ -368,12 +367,10 @@ def dos_record(res, bins=40, omega_max=None, plateau=None):
 def compute(comm, system, kind="full", n_moments=256, n_probes=16, seed=0,
             probe_kind="rademacher", bounds=None, progress=None):
     """KPM moments of one matrix of an ActiveSystem (parjam.spectrum): assemble, run, free."""
-    from parjam import spectrum
-
     A = spectrum.dynamical_matrix(comm, system, kind)
     try:
-        return moments(A, system.d, system.n_modes, kind, n_moments, n_probes, seed,
-                       probe_kind, bounds, progress=progress)
+        return moments(A, system.d, system.n_modes, kind, n_moments, n_probes, seed=seed,
+                       probe_kind=probe_kind, bounds=bounds, progress=progress)
     finally:
         A.destroy()
 

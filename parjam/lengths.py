@@ -39,14 +39,23 @@ as in the paper's Appendix, inside each cube (:func:`extended_soft_count`: G mul
 particle i by prod_a sin^2(pi u_a / l), the rigid motions removed first): ``lstar_extended``
 is the edge above which no cube keeps a soft mode with e > e0 (default 0.4 x 2^-d, 40 % of a
 uniform mode).
+
+Why one file of ~600 lines: the speeds, omega* and the three lengths are one analysis (``parjam
+lengths``), and l* needs its own cube counting (cut, prune, pieces, extension); its sections are
+the speeds, l*, the whole analysis and the output.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
-from parjam import env, hessian, observables, softmodes
+from parjam import env, hessian, io, observables, softmodes, solver_choice, spectrum, structure
+from parjam import moduli as moduli_mod
 from parjam.errors import ParjamError
+from parjam.network import Contacts, analyze
 
 
 # --------------------------------------------------------------------------- sound speeds
@@ -148,9 +157,6 @@ def prune_underconstrained(n, d, i, j):
 
 def components(n, i, j, labels=False):
     """Number of connected pieces of the contact graph (and each particle's piece)."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
     g = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
     count, lab = connected_components(g, directed=False)
     return (count, lab) if labels else count
@@ -218,8 +224,6 @@ def extended_soft_count(H, u, ell, labels, e0, zero_tol=1e-8):
     and the eigenvalues e of G projected on it, G multiplying particle i by
     g_i^2 = prod_a sin^2(pi u_a / ell) (u measured from the cube's corner; 2^-d for a uniform
     mode): the number of e > e0.  Surface-localised floppy clusters have e ~ 0."""
-    import scipy.linalg
-
     d = u.shape[1]
     top = np.abs(H).sum(axis=1).max()
     _, V = scipy.linalg.eigh(H, subset_by_value=(-np.inf, zero_tol * top))
@@ -234,7 +238,7 @@ def extended_soft_count(H, u, ell, labels, e0, zero_tol=1e-8):
     return int(np.sum(e > e0))
 
 
-def count_cube(pos, contacts, L, x0, ell, alpha, eps, scale, comm_self, e0=None,
+def count_cube(pos, contacts, L, x0, ell, *, alpha, eps, scale, comm_self, e0=None,
                max_dof=EXTENDED_MAX_DOF):
     """Soft modes of one cube (see module doc), on a single-rank communicator; with ``e0`` also
     the extended ones (dense, cores of at most ``max_dof`` degrees of freedom)."""
@@ -352,13 +356,11 @@ def default_e0(d):
     return 0.4 * 2.0 ** -d
 
 
-def lstar(comm, pack, ells, samples=8, seed=0, net=None, progress=None, e0=None,
+def lstar(comm, pack, ells, *, samples=8, seed=0, net=None, progress=None, e0=None,
           extended=True):
     """Cut cubes of every edge in ``ells`` at ``samples`` random positions (the same on every
     rank count: positions from ``seed``), count their soft modes; cubes are spread over the ranks
     of ``comm`` (each counted on one rank) and the counts gathered everywhere."""
-    from parjam.network import analyze
-
     PETSc = env.petsc()
     net = net if net is not None else analyze(pack)
     if net.n_active == 0 or net.excess < 0:
@@ -378,8 +380,6 @@ def lstar(comm, pack, ells, samples=8, seed=0, net=None, progress=None, e0=None,
     mine = []
     # only non-rattlers take part: pass their positions and re-indexed contacts
     index = np.cumsum(act) - 1
-    from parjam.network import Contacts
-
     contacts = Contacts(index[c.i], index[c.j], c.rij, c.r, c.sigma)
     pos_a = pos[act]
     for t in range(len(ells) * samples):
@@ -387,8 +387,8 @@ def lstar(comm, pack, ells, samples=8, seed=0, net=None, progress=None, e0=None,
             continue
         e, s = divmod(t, samples)
         mine.append((t, count_cube(pos_a, contacts, pack.L, corners[e, s], ells[e],
-                                   pack.alpha, pack.eps, scale, PETSc.COMM_SELF,
-                                   e0 if extended else None)))
+                                   alpha=pack.alpha, eps=pack.eps, scale=scale,
+                                   comm_self=PETSc.COMM_SELF, e0=e0 if extended else None)))
     everything = sorted(sum(mpi.allgather(mine), []), key=lambda x: x[0])
     failed = sum(x[1].null < 0 for x in everything)
     if progress is not None:
@@ -401,7 +401,6 @@ def lstar(comm, pack, ells, samples=8, seed=0, net=None, progress=None, e0=None,
 # --------------------------------------------------------------------------- the whole analysis
 
 WHAT = ("speeds", "omega", "lstar", "structure")
-COMPLETE_MAX_DOF = 12000  # without --k: the complete spectrum by dense LAPACK up to this size
 
 
 @dataclass
@@ -472,8 +471,6 @@ def default_k_max(pack):
 def fit_structure(sf, w_star, k_fit, smooth):
     """Peaks, dispersion slopes over k <= k_fit, and l_T = 1 / k* where the transverse peak
     reaches omega* (NaN if it never does in the computed range)."""
-    from parjam import structure
-
     pL, pT = sf.peaks("L", smooth), sf.peaks("T", smooth)
     out = {"c_L_fit": structure.dispersion_slope(sf.k, pL, k_fit),
            "c_T_fit": structure.dispersion_slope(sf.k, pT, k_fit), "k_fit": float(k_fit),
@@ -487,14 +484,10 @@ def fit_structure(sf, w_star, k_fit, smooth):
     return out, pL, pT
 
 
-def compute(comm, pack, what=("speeds", "omega"), matrix="full", k=None, method="auto",
+def compute(comm, pack, what=("speeds", "omega"), *, matrix="full", k=None, method="auto",
             plateau=None, ells=None, samples=8, seed=0, k_max=None, k_fit=None, smooth=0.05,
             progress=None, e0=None):
     """Compute only the parts in ``what`` (subset of WHAT) for one packing on ``comm``."""
-    from parjam import moduli as moduli_mod
-    from parjam import spectrum
-    from parjam.network import analyze
-
     bad = set(what) - set(WHAT)
     if bad or not what:
         raise ParjamError(f"unknown quantities {sorted(bad)}; choose from {', '.join(WHAT)}")
@@ -511,13 +504,13 @@ def compute(comm, pack, what=("speeds", "omega"), matrix="full", k=None, method=
     if "omega" in what or "structure" in what:
         system = spectrum.active_system(pack, net)
         kk = k if k is not None else system.n_modes
-        if k is None:  # omega* from the complete spectrum: dense LAPACK
-            if system.dof > COMPLETE_MAX_DOF and method != "dense":
+        if k is None and method != "dense":  # omega* from the complete spectrum
+            try:
+                method = solver_choice.choose_solver(system.dof, system.n_modes, whole=True)
+            except ParjamError as exc:
                 raise ParjamError(
-                    f"{system.dof} degrees of freedom: too many for a complete dense spectrum "
-                    f"(limit {COMPLETE_MAX_DOF}): give --k (the lowest modes; omega* then needs "
-                    "the plateau within them, see --plateau) or --method dense")
-            method = "dense"
+                    f"{exc}: give --k (the lowest modes; omega* then needs the plateau within "
+                    "them, see --plateau) or --method dense") from None
         log(f"spectrum: {kk} lowest modes of the {matrix} matrix")
         spec = spectrum.compute(comm, system, matrix, k=kk, method=method,
                                 vectors="structure" in what, progress=log)
@@ -529,17 +522,17 @@ def compute(comm, pack, what=("speeds", "omega"), matrix="full", k=None, method=
         if ells is None:
             ells = np.linspace(0.2, 1.0, 9) * pack.L
         log(f"l*: {len(ells)} cube edges x {samples} positions")
-        res.lstar = lstar(comm, pack, ells, samples, seed, net, log, e0)
+        res.lstar = lstar(comm, pack, ells, samples=samples, seed=seed, net=net, progress=log,
+                          e0=e0)
     if "structure" in what:
         res.structure, res.structure_fit = structure_part(
-            comm, pack, net, res, k_max or default_k_max(pack), k_fit, smooth, log)
+            comm, pack, net, res, k_max=k_max or default_k_max(pack), k_fit=k_fit,
+            smooth=smooth, log=log)
     return res
 
 
-def structure_part(comm, pack, net, res, k_max, k_fit, smooth, log):
+def structure_part(comm, pack, net, res, *, k_max, k_fit, smooth, log):
     """F_L, F_T on rank 0 (where the eigenvectors are) and broadcast."""
-    from parjam import structure
-
     mpi = comm.tompi4py()
     spec = res.spectrum
     k_fit = k_fit or 1.5 * 2.0 * np.pi / pack.L  # the two smallest shells, |m|^2 = 1, 2
@@ -564,8 +557,6 @@ def structure_part(comm, pack, net, res, k_max, k_fit, smooth, log):
 
 def write(path, res, prov=None):
     """/lengths/* atomically (call on one rank)."""
-    from parjam import io
-
     with io.atomic_h5(path) as f:
         io.write_h5md_header(f, prov)
         g = f.create_group("lengths")

@@ -50,7 +50,7 @@ def _linear_solver(ff, H):
     return ksp
 
 
-def _factor(ff, mu):
+def factor_shifted(ff, mu):
     """Factorise H + mu I (kept on ff); returns its number of negative pivots (None: unknown)."""
     ksp = _linear_solver(ff, ff.hessian(shift=mu))
     factor.exact_inertia(ksp.getPC())
@@ -59,7 +59,7 @@ def _factor(ff, mu):
     return factor.negative_pivots(ksp.getPC())
 
 
-def _remove_translations(ff, vec):
+def remove_translations(ff, vec):
     """Subtract the mean displacement/force per Cartesian direction (the d zero modes)."""
     loc = ff.local(vec)
     mean = ff.mpi.allreduce(loc.sum(axis=0)) / ff.n
@@ -89,13 +89,13 @@ def newton(ff, ftol, max_steps=60, progress=None):
             status = "converged"
             break
         mu = mu_scale * _newton_shift(fmax)
-        if _factor(ff, mu):
+        if factor_shifted(ff, mu):
             # H + mu I is indefinite: not yet in the basin of a minimum (a saddle region, the
             # contact network still rearranging), where Newton steps wander; FIRE goes on
             status = "saddle"
             break
         ksp = ff.newton_ksp
-        _remove_translations(ff, f)
+        remove_translations(ff, f)
         ksp.solve(f, dx)
         if ksp.getConvergedReason() < 0:
             # an iterative KSP (e.g. -newton_ksp_type cg -newton_pc_type gamg) met negative
@@ -103,7 +103,7 @@ def newton(ff, ftol, max_steps=60, progress=None):
             # inertia of a factorisation
             status = "saddle"
             break
-        _remove_translations(ff, dx)
+        remove_translations(ff, dx)
         ff.x.copy(x0)
         accepted = False
         s = 1.0
@@ -171,7 +171,7 @@ class MinimiseState:
 FIRE_TAIL_DOF = 6000
 
 
-def minimise(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_params=None,
+def minimize(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_params=None,
              attempts=8, snapshot=None, resume=None):
     """FIRE until max|F| < fire_rel * (mean contact force), then Newton to ftol; above
     FIRE_TAIL_DOF degrees of freedom FIRE until max|F| < ftol (fire_rel = 0).

@@ -49,8 +49,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, factor, hessian, potential
+from parjam import env, factor, hessian, io, potential
 from parjam.errors import ParjamError
+from parjam.logstage import log_stage
 from parjam.network import analyze
 
 
@@ -151,25 +152,6 @@ def softest_shear(Bt):
 
 def min_shear_modulus(Bt):
     return softest_shear(Bt)[0]
-
-
-def power_law_fit(x, Y, n_boot=500, seed=0):
-    """Exponent of mean(Y, members) ~ x^s by least squares in log-log, with a bootstrap error
-    over members (rows of Y).  Returns (s, standard error); nan if a mean is not positive.
-    NaN entries (members left out at some x, e.g. unstable ones) are skipped in the means."""
-    Y = np.asarray(Y, dtype=float)
-    lx = np.log(np.asarray(x, dtype=float))
-
-    def slope(rows):
-        with np.errstate(all="ignore"):
-            m = np.nanmean(Y[rows], axis=0) if np.isnan(Y).any() else Y[rows].mean(axis=0)
-        if not np.isfinite(m).all():
-            return np.nan
-        return np.polyfit(lx, np.log(m), 1)[0] if (m > 0).all() else np.nan
-
-    rng = np.random.default_rng(seed)
-    boots = [slope(rng.integers(0, len(Y), len(Y))) for _ in range(n_boot)]
-    return float(slope(np.arange(len(Y)))), float(np.nanstd(boots))
 
 
 @dataclass
@@ -342,7 +324,6 @@ def energy_tensor(c_affine, Q, d, volume):
 
 def compute(pack, comm=None, progress=None):
     """Linear-response elastic constants of a packing on communicator ``comm`` (PETSc)."""
-    from parjam.packing import log_stage
 
     PETSc = env.petsc()
     comm = comm or PETSc.COMM_WORLD
@@ -368,8 +349,6 @@ def compute(pack, comm=None, progress=None):
 
 def write(path, mod, prov=None):
     """Write /moduli/* (tensors, scalars, solver report) atomically; call on one rank."""
-    from parjam import io
-
     with io.atomic_h5(path) as f:
         io.write_h5md_header(f, prov)
         g = f.create_group("moduli")

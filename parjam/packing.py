@@ -16,13 +16,17 @@ import numpy as np
 from parjam import env, minimize
 from parjam.errors import ParjamError, UnjammedError
 from parjam.forces import ForceField
+from parjam.logstage import log_stage
+from parjam.network import analyze
+from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW,
+                             DEFAULT_FTOL, DEFAULT_PHI_START, DEFAULT_RATIO)
 from parjam.system import Packing, sphere_volume
 
 DISPERSITIES = ("mono", "bi", "poly")
 PHI_MAX = {2: 0.99, 3: 0.9}  # the phi_c search gives up above these (nothing jams so late)
 
 
-def diameters(n, dispersity="mono", ratio=1.4, rng=None):
+def diameters(n, dispersity="mono", ratio=DEFAULT_RATIO, rng=None):
     """Diameters with the smallest equal to 1: mono; bi (50:50, large/small = ratio); poly
     (uniform between 1 and ratio)."""
     if dispersity == "mono":
@@ -37,7 +41,13 @@ def diameters(n, dispersity="mono", ratio=1.4, rng=None):
     raise ParjamError(f"unknown dispersity {dispersity!r}; choose from {', '.join(DISPERSITIES)}")
 
 
-def random_packing(d, n, phi, alpha=2.0, dispersity="mono", ratio=1.4, rng=None):
+def member_rng(seed, member):
+    """Independent, reproducible stream for member m, whatever the number of ranks."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(member)]))
+
+
+def random_packing(d, n, phi, alpha=DEFAULT_ALPHA, dispersity="mono", ratio=DEFAULT_RATIO,
+                   rng=None):
     """Uniform random positions at volume fraction phi: an infinite-temperature configuration."""
     rng = rng if rng is not None else np.random.default_rng()
     diam, species = diameters(n, dispersity, ratio, rng)
@@ -63,30 +73,11 @@ def spatial_order(pos, L, cell):
     return np.argsort(key, kind="stable")
 
 
-class log_stage:
-    """A PETSc log stage (shown by -log_view) around a phase of the work."""
-
-    _stages = {}
-
-    def __init__(self, name):
-        PETSc = env.petsc()
-        if name not in self._stages:
-            self._stages[name] = PETSc.Log.Stage(name)
-        self.stage = self._stages[name]
-
-    def __enter__(self):
-        self.stage.push()
-
-    def __exit__(self, *exc):
-        self.stage.pop()
-        return False
-
-
 @dataclass
 class JamSettings:
-    ftol: float = 1e-13  # max |F| on every particle (eps/sigma units)
-    e_low: float = 1e-16  # energy-per-particle window of the phi_c state
-    e_high: float = 2e-16
+    ftol: float = DEFAULT_FTOL  # max |F| on every particle (eps/sigma units)
+    e_low: float = DEFAULT_ENERGY_WINDOW[0]  # energy-per-particle window of the phi_c state
+    e_high: float = DEFAULT_ENERGY_WINDOW[1]
     first_step: float = 2e-3  # compression step while unjammed (doubles each time)
     max_iter: int = 200
     ptol: float = 1e-6  # relative tolerance of a target pressure
@@ -146,7 +137,7 @@ class Jammer:
         resume = self._resume(call) if ck is not None else None
         hook = ck.snapshot(call, self.ff, self.pack.L, calls_before) if ck is not None else None
         try:
-            res = minimize.minimise(self.ff, self.settings.ftol, e_stop,
+            res = minimize.minimize(self.ff, self.settings.ftol, e_stop,
                                    fire_rel=self.settings.fire_rel, progress=self._inner,
                                    snapshot=hook, resume=resume)
         except ValueError as exc:  # e.g. a box too small for the neighbour search
@@ -187,8 +178,6 @@ class Jammer:
         return res
 
     def pressure(self):
-        from parjam.network import analyze
-
         return analyze(self.pack).pressure
 
     def state(self, res, label, **info):
@@ -363,20 +352,17 @@ class Jammer:
         self.ff.destroy()
 
 
-def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=1.4, alpha=2.0,
-                comm=None, phi_start=None, settings=None):
+def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=DEFAULT_RATIO,
+                alpha=DEFAULT_ALPHA, comm=None, phi_start=None, settings=None):
     """Packings of one configuration at phi_c + dphi for each dphi (ascending), and phi_c.
 
     The same (seed, member) gives the same configuration as ``parjam pack``.  ``comm`` defaults
     to COMM_SELF, so every rank builds the same packing (handy in tests and scripts).
     """
-    from parjam import env
-    from parjam.ensemble import member_rng
-
     PETSc = env.petsc()
     comm = PETSc.COMM_SELF if comm is None else comm
-    dispersity = dispersity or ("bi" if d == 2 else "mono")
-    phi0 = phi_start or {2: 0.86, 3: 0.66}[d]
+    dispersity = dispersity or DEFAULT_DISPERSITY[d]
+    phi0 = phi_start or DEFAULT_PHI_START[d]
     pack = random_packing(d, n, phi0, alpha, dispersity, ratio, member_rng(seed, member))
     jam = Jammer(comm, pack, settings)
     try:

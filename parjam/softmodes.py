@@ -25,16 +25,23 @@ Pipeline (every step distributed over the ranks of ``comm``; rows split as in
 5. f(x) from the trace of the soft-space projector (:func:`overlap_function`), and the trial
    modes dR*_b = g dR_b / sqrt(e_b) (Eq. rr), orthonormal by construction, with energies
    <dR*|M_uncut|dR*> bounded by omega_L^2 = kappa z_max (pi/L)^2 / e0 (Eq. kkk).
+
+Why one file of ~1000 lines: the five steps share the distributed row layout, the cut system
+(:class:`CutSystem`) and the MUMPS factor of step 3, and are read in that order against the
+paper; split, every module would import every other.  Its sections are marked by ``# ---``
+rules (cuts, matrices, counting, extraction, checks, extension, f(x), trial modes, dense
+references, the whole analysis, output).
 """
 
 import re
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, factor, hessian, potential, spectrum
+from parjam import env, factor, hessian, io, network, potential, spectrum
 from parjam.errors import ParjamError
-from parjam.network import Contacts, analyze
+from parjam.network import Contacts
 
 AXES = "xyz"
 E0_LADDER = (0.05, 0.1, 0.2, 0.3, 0.4)
@@ -186,7 +193,7 @@ def prepare(pack, planes, allow_hyperstatic=False, net=None):
     """Remove rattlers, check isostaticity and cut the contacts crossing ``planes``."""
     if not planes:
         raise ParjamError("no cut given: use --cut AXIS=FRACTION and/or --subdivide M")
-    net = net if net is not None else analyze(pack)
+    net = net if net is not None else network.analyze(pack)
     if net.n_active == 0:
         raise ParjamError(f"all {pack.n} particles are rattlers: not a jammed packing, "
                           "there is no contact network to cut")
@@ -444,7 +451,7 @@ def null_basis_block(comm, M, d, n_soft, scale, prefix="soft_", oversample=8, ta
     ksp = _factorised(comm, M, tau * scale, prefix)
     T = translation_columns(M, d)
     try:
-        X = _random_block(lo, hi, k, seed)
+        X = random_block(lo, hi, k, seed)
         for rnd in range(1, max_rounds + 1):
             for _ in range(passes if rnd == 1 else 1):
                 X = _normalised_columns(comm, _apply_inverse(comm, ksp, _deflated(comm, T, X),
@@ -501,7 +508,7 @@ def _factorised(comm, M, shift, prefix):
     return ksp
 
 
-def _random_block(lo, hi, k, seed, rows=3072):
+def random_block(lo, hi, k, seed, rows=3072):
     """Gaussian rows lo..hi-1 of a global n x k matrix drawn in fixed row blocks, so that the
     start (and the result) does not depend on the number of ranks."""
     out = np.empty((hi - lo, k))
@@ -616,13 +623,13 @@ class _ProjectedInverse:
 # --------------------------------------------------------------------------- checks
 
 def allreduce(comm, x):
-    from mpi4py import MPI
+    from mpi4py import MPI  # start-up order: mpi4py only after PETSc (parjam.env)
 
     return comm.tompi4py().allreduce(x, op=MPI.SUM)
 
 
 def allmax(comm, x):
-    from mpi4py import MPI
+    from mpi4py import MPI  # start-up order: mpi4py only after PETSc (parjam.env)
 
     return comm.tompi4py().allreduce(x, op=MPI.MAX)
 
@@ -844,7 +851,7 @@ def dense_null_space(S, rtol=1e-8):
 
 # --------------------------------------------------------------------------- the whole analysis
 
-@dataclass
+@dataclass(kw_only=True)
 class SoftModes:
     """Everything ``parjam softmodes`` reports for one cut packing (replicated on every rank
     except ``V``, this rank's rows of the extended basis)."""
@@ -903,11 +910,9 @@ class SoftModes:
         }
 
 
-def analyse(comm, cs, e0=0.1, nbins=10, progress=None, basis="block"):
+def analyze(comm, cs, e0=0.1, nbins=10, progress=None, basis="block"):
     """Count, extract and characterise the soft modes of the cut system ``cs``; ``basis``
     chooses the null-space method (:func:`null_basis`)."""
-    import time
-
     PETSc = env.petsc()
     log = progress or (lambda msg: None)
     d = cs.d
@@ -968,10 +973,12 @@ def _characterise(comm, cs, nb, count, e0, nbins):
     n_below = variational_count(comm, Mu, omega_t2) if ext.any() else 0
     Mu.destroy()
     scale = stiffness_scale(cs.kept, cs.alpha, cs.eps)
-    return SoftModes(cs, count, count - cs.d, V, nb.lo, nb.hi, e, nb.rayleigh,
-                     nb.gap / scale, 0.0, ortho, np.stack([centres, f, f_nt], axis=1), E, Eg,
-                     e0, omega_L2(e0, cs.kappa, cs.z_max, grad2), grad2, omega_t2, n_below,
-                     extended_fraction(e, cs.q))
+    return SoftModes(cs=cs, count=count, n_soft=count - cs.d, V=V, lo=nb.lo, hi=nb.hi, e=e,
+                     rayleigh=nb.rayleigh, gap=nb.gap / scale, eq3=0.0, ortho=ortho,
+                     overlap=np.stack([centres, f, f_nt], axis=1), trial_energy=E,
+                     modulated_energy=Eg, e0=e0, omega_L2=omega_L2(e0, cs.kappa, cs.z_max, grad2),
+                     grad2=grad2, omega_t2=omega_t2, n_below=n_below,
+                     fractions=extended_fraction(e, cs.q))
 
 
 # --------------------------------------------------------------------------- output
@@ -983,10 +990,8 @@ def gather_columns(comm, V, cols, root=0):
 
 
 def write(comm, path, res, vectors=False, prov=None, block=64):
-    """/softmodes/* of the issue, written atomically on rank 0; the basis only with ``vectors``
-    (gathered to rank 0 in blocks of columns)."""
-    from parjam import io
-
+    """/softmodes/* (docs/file-format.md), written atomically on rank 0; the basis only with
+    ``vectors`` (gathered to rank 0 in blocks of columns)."""
     rank = comm.getRank()
     if rank != 0:
         for start in range(0, res.n_soft, block) if vectors else []:

@@ -19,26 +19,25 @@ only when asked for.
 
 SLEPc/PETSc objects use the options prefix ``modes_`` (``-modes_eps_view``,
 ``-modes_st_mat_mumps_icntl_7 5``, ``-modes_eps_krylovschur_partitions 2`` ...).
+The choice of method for ``auto`` is parjam.solver_choice's.
+
+Why one file of ~580 lines: the three methods return the same :class:`Spectrum` with the same
+checks (residuals, zero cluster, inertia counts) and are tested against each other; the dense
+reference, the SLEPc set-up and the collection of pairs are its sections.
 """
 
+import copy
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 
-from parjam import env, factor, hessian, network, observables
+from parjam import env, factor, hessian, network, observables, solver_choice
 from parjam.errors import ParjamError, UnjammedError
 
 METHODS = ("auto", "dense", "sinvert", "slice")
 MATRICES = hessian.KINDS
-DENSE_MAX_DOF = 3000  # auto: dense LAPACK up to this many degrees of freedom d N'
-# auto with --k (measured, docs/speed-accuracy.md): from 759 dof on sinvert was faster than dense
-# for k <= 10 % of the modes (1.3x at 10 %, 30x for k = 10 at 3066 dof) and tied at 375 dof;
-# dense won from about 15-20 % of the modes on (1.6x at a third); dense reaches residuals
-# ~1e-15, sinvert ~1e-12 at --tol 1e-10
-DENSE_SMALL_DOF = 400  # auto --k: dense below this many dof whatever k
-DENSE_FRACTION = 0.15  # auto --k: dense (up to DENSE_MAX_DOF) when k >= this fraction of modes
-DENSE_TOL = 1e-12  # auto --k: dense (up to DENSE_MAX_DOF) when --tol is tighter than this
 DENSE_LIMIT_DOF = 20000  # --method dense refused above (a 20000^2 matrix is 3.2 GB)
 ZERO_TOL = 1e-9  # |lambda| / ||D||_inf below which an eigenvalue belongs to the zero cluster
 PREFIX = "modes_"
@@ -192,21 +191,13 @@ class Spectrum:
 
 
 def choose_method(method, dof, window, k=None, n_modes=None, tol=None):
-    """``auto``: above DENSE_MAX_DOF degrees of freedom slice (window) or sinvert; below it dense,
-    except for the k lowest modes (k and n_modes given), where sinvert is chosen unless the
-    system is tiny (DENSE_SMALL_DOF), k is a large share of the modes (DENSE_FRACTION) or the
-    tolerance is below what sinvert reaches cheaply (DENSE_TOL): the crossovers measured in
-    docs/speed-accuracy.md."""
+    """``auto``: the choice of parjam.solver_choice (the crossovers measured in
+    docs/speed-accuracy.md) for the k lowest modes or a window (a window wins when both are
+    given); any other method is returned as it is."""
     if method != "auto":
         return method
-    if dof > DENSE_MAX_DOF:
-        return "slice" if window is not None else "sinvert"
-    if window is not None or k is None or n_modes is None:
-        return "dense"
-    if (dof <= DENSE_SMALL_DOF or k >= DENSE_FRACTION * n_modes
-            or (tol is not None and tol < DENSE_TOL)):
-        return "dense"
-    return "sinvert"
+    return solver_choice.choose_solver(dof, n_modes, k=k if window is None else None,
+                                       window=window, tol=tol)
 
 
 def window_interval(window, norm):
@@ -238,7 +229,7 @@ def check_k(k, system):
                           f"(d N' - d with N' = {system.n} non-rattlers, d = {system.d})")
 
 
-def compute(comm, system, kind="full", k=None, window=None, method="auto", tol=1e-10,
+def compute(comm, system, kind="full", *, k=None, window=None, method="auto", tol=1e-10,
             target=None, vectors=False, progress=None):
     """Spectrum of one matrix of a system by the chosen method (see module doc)."""
     if kind not in MATRICES:
@@ -259,12 +250,13 @@ def compute(comm, system, kind="full", k=None, window=None, method="auto", tol=1
                           f"{DENSE_LIMIT_DOF}): use sinvert or slice")
     t0 = time.perf_counter()
     if method == "dense":
-        spec = dense_modes(comm, system, kind, k, window, tol, vectors)
+        spec = dense_modes(comm, system, kind, k=k, window=window, tol=tol,
+                           want_vectors=vectors)
     else:
         A = dynamical_matrix(comm, system, kind)
         try:
-            spec = slepc_modes(comm, A, system, kind, method, k, window, tol, target, vectors,
-                               progress)
+            spec = slepc_modes(comm, A, system, kind=kind, method=method, k=k, window=window,
+                               tol=tol, target=target, want_vectors=vectors, progress=progress)
         finally:
             A.destroy()
     spec.seconds = time.perf_counter() - t0
@@ -288,8 +280,6 @@ def deflated_dense(H, n, d, norm):
 
 def dense_eigh(Hdefl, k=None, interval=None, vectors=True):
     """The k lowest eigenpairs of a deflated dense matrix, or those in a lambda interval."""
-    import scipy.linalg
-
     kw = {"subset_by_index": [0, k - 1]} if k is not None else {"subset_by_value": interval}
     if not vectors:
         return scipy.linalg.eigh(Hdefl, eigvals_only=True, **kw), None
@@ -299,18 +289,14 @@ def dense_eigh(Hdefl, k=None, interval=None, vectors=True):
 def count_below_dense(Hd, sigma):
     """Eigenvalues of the symmetric Hd below sigma, from the inertia of an LDL^T factorisation
     (Sylvester): no eigen-decomposition needed."""
-    import scipy.linalg
-
     _, D, _ = scipy.linalg.ldl(Hd - sigma * np.eye(len(Hd)))
     diag, off = np.diag(D).copy(), np.diag(D, 1).copy()
     return int(np.sum(scipy.linalg.eigvalsh_tridiagonal(diag, off) < 0))
 
 
-def dense_modes(comm, system, kind, k, window, tol, want_vectors):
+def dense_modes(comm, system, kind, *, k, window, tol, want_vectors):
     """The dense reference path: computed on rank 0 of ``comm`` and broadcast (without vectors:
     only rank 0 returns them)."""
-    import copy
-
     mpi = comm.tompi4py()
     spec, message = None, None
     if mpi.Get_rank() == 0:
@@ -449,7 +435,11 @@ def mumps_stats(F):
         return {}
 
 
-def slepc_modes(comm, A, system, kind, method, k, window, tol, target, want_vectors, progress):
+def slepc_modes(comm, A, system, *, kind, method, tol, k=None, window=None, target=None,
+                want_vectors=False, progress=None):
+    """The k lowest modes (method "sinvert", shift-and-invert at ``target``) or the modes in a
+    frequency ``window`` (method "slice", spectrum slicing) of the assembled matrix A of one
+    ``kind``, to residual ``tol`` relative to ||A||_inf, with their observables."""
     PETSc = env.petsc()
     norm = A.norm(PETSc.NormType.INFINITY)
     zero_tol = ZERO_TOL * norm
@@ -470,8 +460,9 @@ def slepc_modes(comm, A, system, kind, method, k, window, tol, target, want_vect
             M = A.convert("sbaij")
             eps = slice_eps(M, interval, abstol)
         try:
-            spec = _solve_and_collect(comm, eps, A, system, kind, method, k, window, tol, norm,
-                                      target, want_vectors, log)
+            spec = _solve_and_collect(comm, eps, A, system, kind=kind, method=method, k=k,
+                                      window=window, tol=tol, norm=norm, target=target,
+                                      want_vectors=want_vectors, log=log)
         finally:
             try:
                 eps.destroy()
@@ -483,7 +474,7 @@ def slepc_modes(comm, A, system, kind, method, k, window, tol, target, want_vect
     return spec
 
 
-def _solve_and_collect(comm, eps, A, system, kind, method, k, window, tol, norm, target,
+def _solve_and_collect(comm, eps, A, system, *, kind, method, k, window, tol, norm, target,
                        want_vectors, log):
     PETSc = env.petsc()
     zero_tol = ZERO_TOL * norm
@@ -502,7 +493,8 @@ def _solve_and_collect(comm, eps, A, system, kind, method, k, window, tol, norm,
         F = eps.getST().getKSP().getPC().getFactorMatrix()
         n_unstable = F.getInertia()[0] if target <= -zero_tol else -1
         info.update(mumps_stats(F))
-        spec = _collect(comm, eps, A, system, kind, method, k, tol, norm, want_vectors, log)
+        spec = _collect(comm, eps, A, system, kind=kind, method=method, n_wanted=k, tol=tol,
+                        norm=norm, want_vectors=want_vectors, log=log)
         spec.target, spec.n_unstable = target, int(n_unstable)
     else:
         interval = eps.getInterval()
@@ -513,7 +505,8 @@ def _solve_and_collect(comm, eps, A, system, kind, method, k, window, tol, norm,
                               f"eigenvalue (inertia count 0)")
         info.update({"inertia_shifts": [float(s) for s in shifts],
                      "inertias": [int(i) for i in inertias], "below_window": int(inertias[0])})
-        spec = _collect(comm, eps, A, system, kind, method, count, tol, norm, want_vectors, log)
+        spec = _collect(comm, eps, A, system, kind=kind, method=method, n_wanted=count, tol=tol,
+                        norm=norm, want_vectors=want_vectors, log=log)
         spec.interval = tuple(interval)
         if interval[0] == zero_tol:  # below it: the d translations and unstable modes
             spec.n_unstable = int(inertias[0]) - system.d
@@ -548,7 +541,7 @@ class _ModeObservables:
             obj.destroy()
 
 
-def _collect(comm, eps, A, system, kind, method, n_wanted, tol, norm, want_vectors, log):
+def _collect(comm, eps, A, system, *, kind, method, n_wanted, tol, norm, want_vectors, log):
     """Accepted pairs (true residual <= tol), their observables and (rank 0) vectors."""
     PETSc = env.petsc()
     SLEPc = env.slepc()

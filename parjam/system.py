@@ -112,7 +112,7 @@ def neighbour_pairs_touching(pos, L, cutoff, lo, hi):
     periodic bounding box of [lo, hi) grown by the cutoff.  For a rank's block of cell-ordered
     particles that is its slab or block and a shell, not all N."""
     pos = wrap(np.asarray(pos, dtype=np.float64), L)
-    cand = _box_candidates(pos, L, cutoff, lo, hi)
+    cand = box_candidates(pos, L, cutoff, lo, hi)
     if len(cand) == len(pos):  # one rank, or a block that spans the box
         pairs = neighbour_pairs(pos, L, cutoff)
     elif len(cand) > 1:
@@ -123,7 +123,7 @@ def neighbour_pairs_touching(pos, L, cutoff, lo, hi):
     return pairs[((i >= lo) & (i < hi)) | ((j >= lo) & (j < hi))]
 
 
-def _box_candidates(pos, L, cutoff, lo, hi):
+def box_candidates(pos, L, cutoff, lo, hi):
     """Sorted indices of the particles within ``cutoff`` (per coordinate, periodically) of the
     smallest periodic box that holds particles lo..hi-1 (positions wrapped into [0, L))."""
     own = pos[lo:hi]

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""One large run end to end, stage by stage, with wall time and peak memory (issue 6: N = 10^5 in
-3D within 30 min and 16 GB on this machine).  Run by hand, never in the test suite:
+"""One large run end to end, stage by stage, with wall time and peak memory (the goal: N = 10^5
+in 3D within 30 min and 16 GB on this machine).  Run by hand, never in the test suite:
 
     source scripts/mpi-env
     .venv/bin/python scripts/bench_scale.py --n 100000 --ranks 2 --out bench-out/scale \

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Elastic moduli, sound speeds and lengths over a dphi ladder for an ensemble, with fitted
-exponents and bootstrap errors over members (issue 8).  Run by hand (results in docs/moduli.md):
+exponents and bootstrap errors over members.  Run by hand (results in docs/moduli.md):
 
     nice -n 10 .venv/bin/python scripts/moduli_scaling.py --dim 3 --n 256 --members 8 \
         --dphi 1e-4 1e-3 1e-2 1e-1 [--alpha 2] [--lengths] --out bench-out/scaling_d3.json
@@ -111,9 +111,15 @@ def table(rows, key, xs, members):
     return Y
 
 
-def fits(rows, gfit_min):
-    from parjam.moduli import power_law_fit
+def power_law_fit(x, Y):
+    """(exponent, bootstrap error) of mean(Y) ~ x^s over members (parjam.fits.fit_power)."""
+    from parjam.fits import fit_power
 
+    f = fit_power(x, Y)
+    return f["exponent"], f["exponent_err"]
+
+
+def fits(rows, gfit_min):
     xs = sorted({r["dphi"] for r in rows})
     members = sorted({r["member"] for r in rows}, key=str)
     alpha = rows[0]["alpha"]

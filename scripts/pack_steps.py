@@ -33,7 +33,7 @@ class Recorder:
         from parjam import minimize
 
         self.mod = minimize
-        self.orig = (minimize.fire, minimize.newton, minimize.minimise)
+        self.orig = (minimize.fire, minimize.newton, minimize.minimize)
         self.calls = []
 
     def _round(self, kind, fn):
@@ -58,11 +58,11 @@ class Recorder:
     def __enter__(self):
         self.mod.fire = self._round("fire", self.orig[0])
         self.mod.newton = self._round("newton", self.orig[1])
-        self.mod.minimise = self._minimise
+        self.mod.minimize = self._minimise
         return self
 
     def __exit__(self, *exc):
-        self.mod.fire, self.mod.newton, self.mod.minimise = self.orig
+        self.mod.fire, self.mod.newton, self.mod.minimize = self.orig
 
 
 def run_one(n, seed, dphi, phi_start, dim=3, dispersity="mono", tail_dof=None, variant=None):

@@ -132,7 +132,7 @@ def test_pack_interrupted_at_the_kth_checkpoint_resumes_bitwise(world, shared_tm
     run's (plus at most the one that restarts FIRE), and the files are the same bitwise."""
     out = os.path.join(shared_tmp, f"ckpt-k{k}")
     writes = {"n": 0}
-    real = checkpoint.Checkpoint._write
+    real = checkpoint.Checkpoint.write
 
     def interrupting(self):
         real(self)
@@ -140,12 +140,12 @@ def test_pack_interrupted_at_the_kth_checkpoint_resumes_bitwise(world, shared_tm
         if writes["n"] == k:
             raise Stop(f"stopped after checkpoint {k}")
 
-    monkeypatch.setattr(checkpoint.Checkpoint, "_write", interrupting)
+    monkeypatch.setattr(checkpoint.Checkpoint, "write", interrupting)
     assert _pack(out) == Stop.exit_code
     path = checkpoint.path_for(out, 0)
     assert os.path.exists(path) and not os.path.exists(manifest.record_path(out, 0))
     first = evaluations["n"]
-    monkeypatch.setattr(checkpoint.Checkpoint, "_write", real)
+    monkeypatch.setattr(checkpoint.Checkpoint, "write", real)
     assert _pack(out) == 0
     resumed = evaluations["n"] - first
     total = int(_attr(os.path.join(reference, "member0000_dphi1.0e-02.h5"),
@@ -174,7 +174,7 @@ def test_foreign_or_unreadable_checkpoint_is_ignored(world, shared_tmp, referenc
         else:
             rec = {"pos": np.zeros((64, 3)), "L": 1.0, "force_calls": 1,
                    "result": MinResult("converged", 0.0, 0.0)}
-            checkpoint._write(path, '{"other": 1}', [rec], None)
+            checkpoint.write_file(path, '{"other": 1}', [rec], None)
     MPI.COMM_WORLD.Barrier()
     assert _pack(out) == 0
     _assert_same(out, reference, exact=world.getSize() == 1)
@@ -185,7 +185,7 @@ def test_record_of_another_volume_fraction_ends_the_replay(world, shared_tmp, mo
     """A record whose box is not the one the protocol asks for (e.g. written by a protocol that
     went another way) is recomputed, with those after it: the result is still the reference."""
     out = os.path.join(shared_tmp, "ckpt-moved")
-    real = checkpoint.Checkpoint._write
+    real = checkpoint.Checkpoint.write
     writes = {"n": 0}
 
     def interrupting(self):
@@ -194,9 +194,9 @@ def test_record_of_another_volume_fraction_ends_the_replay(world, shared_tmp, mo
         if writes["n"] == 100:
             raise Stop("stopped")
 
-    monkeypatch.setattr(checkpoint.Checkpoint, "_write", interrupting)
+    monkeypatch.setattr(checkpoint.Checkpoint, "write", interrupting)
     assert _pack(out) == Stop.exit_code
-    monkeypatch.setattr(checkpoint.Checkpoint, "_write", real)
+    monkeypatch.setattr(checkpoint.Checkpoint, "write", real)
     if world.getRank() == 0:
         with h5py.File(checkpoint.path_for(out, 0), "r+") as f:
             assert len(f["done"]) >= 3
@@ -215,7 +215,7 @@ def test_unwritable_checkpoint_is_a_one_line_error(tmp_path, monkeypatch, capsys
     def full_disk(*args):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(checkpoint, "_write", full_disk)
+    monkeypatch.setattr(checkpoint, "write_file", full_disk)
     out = str(tmp_path / "run")
     assert _pack(out) == 2
     err = capsys.readouterr().err

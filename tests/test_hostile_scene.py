@@ -1,4 +1,4 @@
-"""Hostile input to the scene parser (parjam.scene) and to ``parjam run``, property-based.
+"""Hostile input to the scene parser (parjam.study.scene) and to ``parjam run``, property-based.
 
 Properties:
 - ``scene.loads`` of arbitrary text, and ``scene.parse`` of a valid scene with one value replaced
@@ -22,7 +22,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from parjam import scene
+from parjam.study import scene
 from parjam.errors import ParjamError
 
 from test_hostile import EXAMPLES, assert_clean_error, run_cli, workdir

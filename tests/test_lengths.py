@@ -1,5 +1,5 @@
 """Sound speeds, the lengths l_L, l_T, l* and the structure factors of the eigenmodes
-(parjam.lengths, parjam.structure; issue 8).  Runs serially and under ``mpirun -n 2``."""
+(parjam.lengths, parjam.structure).  Runs serially and under ``mpirun -n 2``."""
 
 import os
 from types import SimpleNamespace

@@ -1,5 +1,5 @@
 """``parjam plot`` (parjam.commands.plot) and the paper's figures and fits (parjam.plot.paper,
-parjam.plot.fits): known power laws recovered with bootstrap errors, a synthetic results
+parjam.fits): known power laws recovered with bootstrap errors, a synthetic results
 directory and a tiny real ``parjam run`` drawn to valid PNGs of the expected size, the single
 result files of other commands, and bad input (one-line error, exit 2, no PNG, no temporary
 file).  Serially and under mpirun -n 2 (rank 0 draws, the other ranks return the same code)."""
@@ -16,8 +16,8 @@ import pytest
 
 from conftest import DATA, ROOT, subprocess_env
 from parjam import cli, env
+from parjam.fits import bootstrap, fit_eq33, fit_power
 from parjam.plot import atomic_png, paper
-from parjam.plot.fits import bootstrap, fit_eq33, fit_power
 
 MPI = env.petsc().COMM_WORLD.tompi4py()
 RANK = MPI.Get_rank()
@@ -69,6 +69,10 @@ def test_fit_power_recovers_the_exponent_with_a_bootstrap_error():
     exact = fit_power(np.tile(x, (3, 1)), np.tile(x**-1.5, (3, 1)), n_boot=50)
     assert exact["exponent"] == pytest.approx(-1.5, abs=1e-12) and exact["exponent_err"] < 1e-12
     assert np.isnan(fit_power(X[:, :1], Y[:, :1], n_boot=10)["exponent"])
+    # an x shared by all members (a protocol's dphi) as one row: the same fit as the full table
+    shared = fit_power(x, Y, n_boot=100)
+    assert shared == fit_power(np.tile(x, (5, 1)), Y, n_boot=100)
+    assert shared["exponent"] == pytest.approx(0.5, abs=0.02) and shared["members"] == 5
 
 
 def test_fit_eq33_separates_a1_and_a2():
@@ -91,7 +95,7 @@ def test_bootstrap_resamples_members():
 # --------------------------------------------------------------------------- a synthetic summary
 
 def write_summary(path, members=4, seed=0):
-    """A summary file in the layout of parjam.commands.run.write_summary with known laws."""
+    """A summary file in the layout of parjam.study.summary.write_summary with known laws."""
     rng = np.random.default_rng(seed)
     labels = ["phi_c"] + [f"dphi{x:.1e}" for x in DPHI]
     with h5py.File(path, "w") as f:

@@ -90,7 +90,7 @@ def test_pairs_touching_a_block_match_the_full_search(d):
     """A rank searches only its block's periodic bounding box grown by the cutoff: the pairs
     touching the block are exactly those of the full search, in the same order, for blocks that
     straddle the periodic boundary, single particles, empty and whole ranges."""
-    from parjam.system import _box_candidates, neighbour_pairs, neighbour_pairs_touching
+    from parjam.system import box_candidates, neighbour_pairs, neighbour_pairs_touching
 
     n = 2000 if d == 2 else 3000
     pack = random_packing(d, n, 0.9 if d == 2 else 0.7, 2.0, "bi", 1.4, np.random.default_rng(3))
@@ -107,7 +107,7 @@ def test_pairs_touching_a_block_match_the_full_search(d):
         got = neighbour_pairs_touching(unwrapped, pack.L, cut, lo, hi)
         assert np.array_equal(got, want), (lo, hi)
     # the point of it: a thin block's search holds a fraction of the particles
-    cand = _box_candidates(pos, pack.L, cut, n // 3, n // 3 + n // 8)
+    cand = box_candidates(pos, pack.L, cut, n // 3, n // 3 + n // 8)
     assert len(cand) < 0.7 * n
 
 
@@ -124,7 +124,7 @@ def test_compiled_kernel_matches_numpy(alpha):
     pi, pj = np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1])
     out_c, out_n = np.zeros((150, 3)), np.zeros((150, 3))
     e_c = kernels.pair_forces(pi, pj, pack.pos, pack.diam, pack.L, alpha, 1.0, 100, 250, out_c)
-    e_n = kernels._pair_forces_numpy(pi, pj, pack.pos, pack.diam, pack.L, alpha, 1.0, 100, 250,
+    e_n = kernels.pair_forces_numpy(pi, pj, pack.pos, pack.diam, pack.L, alpha, 1.0, 100, 250,
                                      out_n)
     np.testing.assert_allclose(out_c, out_n, rtol=1e-12, atol=1e-15 * np.abs(out_n).max())
     assert e_c == pytest.approx(e_n, rel=1e-12)

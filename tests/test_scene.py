@@ -1,4 +1,4 @@
-"""Scenes (parjam.scene) and ``parjam run`` (parjam.commands.run): the parser's errors, the plan
+"""Scenes (parjam.study) and ``parjam run`` (parjam.study.runner): the parser's errors, the plan
 computes only what the observables need, a tiny scene end to end against the library, skipping
 finished work and resuming an interrupted run.  Serially and under mpirun -n 2."""
 
@@ -7,8 +7,15 @@ import os
 import numpy as np
 import pytest
 
-from parjam import scene as sc
+from parjam import cli, spectrum
+from parjam.commands import pack as pack_command
 from parjam.errors import ParjamError
+from parjam.fits import fit_power
+from parjam.protocol import PackingProtocol
+from parjam.study import plan as study_plan
+from parjam.study import runner as runmod
+from parjam.study import scene as sc
+from parjam.study.summary import read_summary
 
 BASE = """
 [[system]]
@@ -92,6 +99,20 @@ def test_parser_defaults_and_lists():
 EXTRAP = BASE.replace("[ensemble]", "phic_method = 'extrapolate'\n[ensemble]")
 
 
+def test_scene_and_pack_build_the_same_packing_protocol():
+    """A scene and ``parjam pack`` with the same settings make the same PackingProtocol: the
+    defaults both leave unsaid (phi_start, ftol, energy window, ratio, alpha, ladder) agree."""
+    for base, extra in ((BASE, []), (EXTRAP, ["--phic-method", "extrapolate"])):
+        args = cli.build_parser().parse_args(
+            ["pack", "--dim", "3", "--n", "64", "--dphi", "1e-3", "1e-2", "--members", "2",
+             "--seed", "3", "--out", "x", "--checkpoint-every", "0"] + extra)
+        pack_command.validate(args)
+        scene = sc.loads(scene_text("contacts = true", base))
+        assert PackingProtocol.from_namespace(args) == scene.packing_protocol(scene.systems[0],
+                                                                              "x")
+    assert scene.packing_protocol(scene.systems[0], "x").phi_start == 0.66
+
+
 def test_extrapolated_phi_c_has_no_phi_c_state_and_its_own_keys():
     """phic_method = "extrapolate" writes no phi_c state, so nothing defaults to it; the
     bisection's stage keys do not change (old results stay valid)."""
@@ -103,7 +124,7 @@ def test_extrapolated_phi_c_has_no_phi_c_state_and_its_own_keys():
     assert ex.observables["fluctuations"]["at"] == ["dphi1.0e-03"]
     assert bi.observables["fluctuations"]["at"] == ["phi_c", "dphi1.0e-03"]
     assert "phic_method" not in bi.protocol.key()
-    pack_ex, pack_bi = sc.plan(ex)[0], sc.plan(bi)[0]
+    pack_ex, pack_bi = study_plan.plan(ex)[0], study_plan.plan(bi)[0]
     assert pack_ex.key != pack_bi.key and "extrapolated" in pack_ex.solvers()
     assert "bisection" in pack_bi.solvers()
 
@@ -115,40 +136,47 @@ def kinds(stages):
 
 
 def test_contacts_only_plans_no_spectrum():
-    stages = sc.plan(sc.loads(scene_text("contacts = true")))
+    stages = study_plan.plan(sc.loads(scene_text("contacts = true")))
     assert kinds(stages) == [("pack", None), ("network", None), ("summary", None)]
 
 
 def test_plan_picks_the_cheapest_solver():
     big = BASE.replace("N = 64", "N = 4096")
     # D(omega) of the relaxed matrix only: no full matrix, eigenvalues only (no vectors)
-    st = sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")))
+    st = study_plan.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")))
     spec = [x for x in st if x.kind == "spectrum"]
     assert [x.matrix for x in spec] == ["relaxed"]
     assert {p["solver"] for p in spec[0].params.values()} == {"dense-eigvalsh"}
     # per-mode sums need eigenvectors, only at the state asked for
-    st = sc.plan(sc.loads(scene_text("dos = true\ntrans = { at = [1e-3] }")))
+    st = study_plan.plan(sc.loads(scene_text("dos = true\ntrans = { at = [1e-3] }")))
     full = next(x for x in st if x.kind == "spectrum")
     assert full.params["dphi1.0e-03"]["solver"] == "dense-eigh"
     assert full.params["dphi1.0e-02"]["solver"] == "dense-eigvalsh"
     # large systems: the lowest modes by shift-and-invert, a window by slicing
-    st = sc.plan(sc.loads(scene_text("lowest = { k = 20 }", big)))
+    st = study_plan.plan(sc.loads(scene_text("lowest = { k = 20 }", big)))
     assert {p["solver"] for p in st[2].params.values()} == {"sinvert"}
-    st = sc.plan(sc.loads(scene_text("omega_star = { window = [0, 0.2] }", big)))
+    st = study_plan.plan(sc.loads(scene_text("omega_star = { window = [0, 0.2] }", big)))
     assert {p["solver"] for p in st[2].params.values()} == {"slice"}
+    # between them the one policy of parjam modes --method auto (parjam.solver_choice)
+    mid = BASE.replace("N = 64", "N = 300")
+    for k, expect in ((10, "sinvert"), (200, "dense")):
+        st = study_plan.plan(sc.loads(scene_text(f"lowest = {{ k = {k} }}", mid)))
+        assert spectrum.choose_method("auto", 900, None, k=k, n_modes=897) == expect
+        assert {p["solver"] for p in st[2].params.values()} == {
+            "dense-eigh" if expect == "dense" else expect}
     # the whole spectrum of a large system is refused before any work
     with pytest.raises(ParjamError, match="dense_max_dof"):
-        sc.plan(sc.loads(scene_text("dos = true\n[solver]\ndense_max_dof = 1000\n", big)))
+        study_plan.plan(sc.loads(scene_text("dos = true\n[solver]\ndense_max_dof = 1000\n", big)))
 
 
 def test_stage_keys_follow_their_inputs():
     a = {st.kind + str(st.matrix): st.key
-         for st in sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")))}
+         for st in study_plan.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")))}
     b = {st.kind + str(st.matrix): st.key
-         for st in sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")
+         for st in study_plan.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")
                                     .replace("members = 2", "members = 3")))}
     c = {st.kind + str(st.matrix): st.key
-         for st in sc.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")
+         for st in study_plan.plan(sc.loads(scene_text("dos = { matrices = ['relaxed'] }")
                                     .replace("seed = 3", "seed = 8")))}
     # more members: the packings and spectra of the first two are reused, the summary is not
     assert a["packNone"] == b["packNone"] and a["spectrumrelaxed"] == b["spectrumrelaxed"]
@@ -157,8 +185,6 @@ def test_stage_keys_follow_their_inputs():
 
 
 def test_dry_run_prints_the_plan(tmp_path, capsys, world):
-    from parjam import cli
-
     path = tmp_path / f"s{world.getRank()}.toml"
     path.write_text(scene_text("dos = true\ntrans = { at = [1e-3] }"))
     assert cli.main(["run", str(path), "--dry-run"]) == 0
@@ -174,11 +200,10 @@ def test_dry_run_prints_the_plan(tmp_path, capsys, world):
 # --------------------------------------------------------------------------- running
 
 def run_scene(text, out, world, stop_after=None):
-    from parjam.commands import run as runmod
     from parjam.progress import Progress
 
     scene = sc.loads(text, "test.toml")
-    runner = runmod.Runner(scene, sc.plan(scene), out, world, Progress(quiet=True),
+    runner = runmod.Runner(scene, study_plan.plan(scene), out, world, Progress(quiet=True),
                            stop_after=stop_after)
     return runner.run(), runner
 
@@ -190,22 +215,19 @@ def log_lines(out):
 
 def test_contacts_only_runs_no_eigensolver(shared_tmp, world, monkeypatch):
     from parjam import moduli, softmodes, spectrum
-    from parjam.commands import run as runmod
 
     def forbidden(*a, **k):
         raise AssertionError("an eigensolver or dynamical matrix was used")
 
     for mod, name in ((spectrum, "compute"), (spectrum, "dense_matrix"),
                       (spectrum, "dynamical_matrix"), (moduli, "compute"),
-                      (softmodes, "analyse")):
+                      (softmodes, "analyze")):
         monkeypatch.setattr(mod, name, forbidden)
-    before = runmod.COUNTERS.copy()
     out = os.path.join(shared_tmp, "contacts")
     code, runner = run_scene(scene_text("contacts = true"), out, world)
     assert code == 0
-    new = runmod.COUNTERS - before
-    assert not any(k.startswith("eigensolve") for k in new), new
-    assert new["network"] > 0
+    assert runner.counts["spectrum"] == 0, runner.counts
+    assert runner.counts["pack"] > 0 and runner.counts["network"] > 0, runner.counts
 
 
 TINY = scene_text("""contacts = true
@@ -216,13 +238,12 @@ trans = { at = [1e-3] }
 
 def test_tiny_scene_matches_the_library(shared_tmp, world):
     from parjam import network, observables, spectrum
-    from parjam.commands import run as runmod
     from parjam.packing import make_jammed
 
     out = os.path.join(shared_tmp, "tiny")
     code, runner = run_scene(TINY, out, world)
     assert code == 0
-    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    summary = read_summary(next(iter(runner.summaries.values())))
     for member in range(2):
         phi_c, packs = make_jammed(3, 64, [1e-3, 1e-2], seed=3, member=member)
         for pack in packs:
@@ -246,7 +267,6 @@ def test_tiny_scene_matches_the_library(shared_tmp, world):
 
 
 def test_rerun_skips_finished_stages(shared_tmp, world):
-    from parjam.commands import run as runmod
 
     out = os.path.join(shared_tmp, "tiny")  # made by the previous test, or made here
     run_scene(TINY, out, world)
@@ -255,16 +275,14 @@ def test_rerun_skips_finished_stages(shared_tmp, world):
     parts = [os.path.join(r, f) for r, _, fs in os.walk(out) for f in fs if f.endswith(".h5")]
     mtimes = {p: os.stat(p).st_mtime_ns for p in parts}
     world.tompi4py().Barrier()
-    before = runmod.COUNTERS.copy()
-    code, _ = run_scene(TINY, out, world)
+    code, again = run_scene(TINY, out, world)
     assert code == 0
-    assert not (runmod.COUNTERS - before), runmod.COUNTERS - before
+    assert not again.counts, again.counts
     assert log_lines(out) == lines
     assert {p: os.stat(p).st_mtime_ns for p in parts} == mtimes
 
 
 def test_interrupted_run_resumes_at_the_next_member(shared_tmp, world):
-    from parjam.commands import run as runmod
 
     text = scene_text("contacts = true\ndos = { matrices = ['relaxed'] }").replace(
         "members = 2", "members = 4")
@@ -289,7 +307,7 @@ def test_interrupted_run_resumes_at_the_next_member(shared_tmp, world):
     assert lines[:len(first)] == first
     computed = [line for line in lines if " member " in line]
     assert len(computed) == len(set(computed)) == 3 * 4  # pack, network, spectrum x 4 members
-    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    summary = read_summary(next(iter(runner.summaries.values())))
     assert summary["dphi1.0e-02"]["network"]["dz"].shape == (4,)
 
 
@@ -311,11 +329,10 @@ omega_star = {{ matrices = ["relaxed"] }}
 
 def law_tables(shared_tmp, world, name, labels, **fmt):
     """Run a tiny 3D scene; (p, dz, omega*) of its ``labels`` as members x states arrays."""
-    from parjam.commands import run as runmod
 
     code, runner = run_scene(LAWS_SCENE.format(**fmt), os.path.join(shared_tmp, name), world)
     assert code == 0
-    s = runmod.read_summary(next(iter(runner.summaries.values())))
+    s = read_summary(next(iter(runner.summaries.values())))
     return tuple(np.array([s[lab][kind][q] if matrix is None else s[lab][kind][matrix][q]
                            for lab in labels]).T
                  for kind, matrix, q in [("network", None, "pressure"), ("network", None, "dz_iso"),
@@ -325,27 +342,23 @@ def law_tables(shared_tmp, world, name, labels, **fmt):
 def test_small_paper_scene_exponents(shared_tmp, world):
     """The paper's laws on a tiny ensemble (3D, N = 128): dz ~ p^(1/2) (Eq. 22) and
     omega* ~ dz in the relaxed system (Fig. "sans"), within generous bounds."""
-    from parjam.moduli import power_law_fit
-
     p, dz, ws = law_tables(shared_tmp, world, "laws", ["dphi1.0e-03", "dphi1.0e-02", "dphi1.0e-01"],
                            system="", protocol="dphi = [1e-4, 1e-3, 1e-2, 1e-1]", seed=11)
-    slope_dz, _ = power_law_fit(p.mean(axis=0), dz)
+    slope_dz = fit_power(p.mean(axis=0), dz, n_boot=100)["exponent"]
     assert 0.3 < slope_dz < 0.75, slope_dz
-    slope_w, _ = power_law_fit(dz.mean(axis=0), ws)
+    slope_w = fit_power(dz.mean(axis=0), ws, n_boot=100)["exponent"]
     assert 0.6 < slope_w < 1.5, slope_w
 
 
 def test_small_hertz_scene_exponents(shared_tmp, world):
     """Hertzian contacts (alpha = 5/2) on a tiny ensemble at target pressures (3D, N = 128):
     dz ~ p^(1/3), not the harmonic p^(1/2), and omega* ~ p^(1/2) (Section VI of the paper)."""
-    from parjam.moduli import power_law_fit
-
     p, dz, ws = law_tables(shared_tmp, world, "hertz-laws", ["p1.0e-04", "p1.0e-03", "p1.0e-02"],
                            system="alpha = 2.5", protocol="pressure = [1e-4, 1e-3, 1e-2]",
                            seed=12)
-    slope_dz, _ = power_law_fit(p.mean(axis=0), dz)
+    slope_dz = fit_power(p.mean(axis=0), dz, n_boot=100)["exponent"]
     assert 0.2 < slope_dz < 0.45, slope_dz  # 1/3; harmonic would give 1/2
-    slope_w, _ = power_law_fit(p.mean(axis=0), ws)
+    slope_w = fit_power(p.mean(axis=0), ws, n_boot=100)["exponent"]
     assert 0.3 < slope_w < 0.75, slope_w  # 1/2
 
 
@@ -353,7 +366,6 @@ def test_lowest_modes_and_window_use_slepc(shared_tmp, world):
     """k lowest modes by shift-and-invert (vectors stored) and a window by slicing, as the plan
     says when dense is not allowed, equal the dense eigenvalues of the same packing."""
     from parjam import observables, spectrum
-    from parjam.commands import run as runmod
     from parjam.packing import make_jammed
 
     # two members: one per rank under mpirun -n 2 (a shared member would be packed by a
@@ -366,7 +378,7 @@ small_dof = 0
 """
     scene = sc.loads(text)
     solvers = {st.matrix: st.params["dphi1.0e-02"]["solver"]
-               for st in sc.plan(scene) if st.kind == "spectrum"}
+               for st in study_plan.plan(scene) if st.kind == "spectrum"}
     assert solvers == {"full": "sinvert", "relaxed": "slice"}
     out = os.path.join(shared_tmp, "slepc")
     code, runner = run_scene(text, out, world)
@@ -392,7 +404,6 @@ def test_kpm_plateau_gives_the_dense_omega_star_from_the_lowest_modes(shared_tmp
     modes; both close to the dense whole-spectrum values of the same packing, where the partial
     spectrum's own plateau would be biased low."""
     from parjam import observables, spectrum
-    from parjam.commands import run as runmod
     from parjam.packing import make_jammed
 
     text = BASE.replace("dphi = [1e-3, 1e-2]", "dphi = [1e-2]").replace("N = 64", "N = 256") \
@@ -424,7 +435,6 @@ small_dof = 0
 
 def test_a_member_that_does_not_jam_is_left_out(shared_tmp, world, monkeypatch):
     from parjam import ensemble
-    from parjam.commands import run as runmod
     from parjam.errors import UnjammedError
 
     real = ensemble.pack_member
@@ -439,7 +449,7 @@ def test_a_member_that_does_not_jam_is_left_out(shared_tmp, world, monkeypatch):
     out = os.path.join(shared_tmp, "failing")
     code, runner = run_scene(text, out, world)
     assert code == 0
-    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    summary = read_summary(next(iter(runner.summaries.values())))
     assert summary["attrs"]["members"] == 2
     assert list(summary["attrs"]["failed_members"]) == [1]
     assert summary["dphi1.0e-02"]["network"]["dz"].shape == (2,)
@@ -453,7 +463,6 @@ def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world
     ranks of one member only: the run records it as missing instead of stopping (on 2 ranks the
     other group would otherwise wait for ever)."""
     from parjam import spectrum
-    from parjam.commands import run as runmod
     from parjam.errors import UnjammedError
 
     real = spectrum.active_system
@@ -467,7 +476,7 @@ def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world
     out = os.path.join(shared_tmp, "fragile")
     code, runner = run_scene(scene_text("dos = { matrices = ['relaxed'] }"), out, world)
     assert code == 0
-    s = runmod.read_summary(next(iter(runner.summaries.values())))
+    s = read_summary(next(iter(runner.summaries.values())))
     g = s["dphi1.0e-03"]["spectrum"]["relaxed"]
     assert np.isnan(g["omega_star"][1]) and np.isfinite(g["omega_star"][0])
     assert set(np.unique(g["member_of_mode"])) == {0}
@@ -477,13 +486,12 @@ def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world
 def test_extrapolated_scene_matches_the_pack_command(shared_tmp, world):
     """A scene with phic_method = "extrapolate" packs exactly what ``parjam pack --phic-method
     extrapolate`` packs (same phi_c, phi and pressure per member)."""
-    from parjam import cli, io, network
-    from parjam.commands import run as runmod
+    from parjam import io, network
 
     out = os.path.join(shared_tmp, "extrap-scene")
     code, runner = run_scene(scene_text("contacts = true\n", EXTRAP), out, world)
     assert code == 0
-    summary = runmod.read_summary(next(iter(runner.summaries.values())))
+    summary = read_summary(next(iter(runner.summaries.values())))
     assert "phi_c" not in summary
     ref = os.path.join(shared_tmp, "extrap-pack")
     assert cli.main(["pack", "--dim", "3", "--n", "64", "--dphi", "1e-3", "1e-2", "--members",

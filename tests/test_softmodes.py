@@ -1,4 +1,4 @@
-"""Soft modes after plane cuts (issue 4): the null-space count against a dense SVD and the
+"""Soft modes after plane cuts (parjam.softmodes): the null-space count against a dense SVD and the
 independent reference counts, Eq. 3 residuals and orthonormality of the SLEPc basis, the
 extension and f(x), the extended subspace, the trial modes against Eq. (kkk) and the true
 spectrum, their 1/L^2 scaling, 1 rank against 2 ranks, and bad input through the CLI."""
@@ -64,7 +64,7 @@ def analysed(comm, pack, texts, allow=False):
     key = (id(pack), tuple(texts), id(comm))
     if key not in _CACHE:
         cs = sm.prepare(pack, planes(pack, texts), allow_hyperstatic=allow)
-        _CACHE[key] = sm.analyse(comm, cs, e0=0.1)
+        _CACHE[key] = sm.analyze(comm, cs, e0=0.1)
     return _CACHE[key]
 
 
@@ -286,7 +286,7 @@ def test_trial_energies_decrease_like_one_over_L_squared(case):
     for path in files:
         pack = io.read_packing(path)
         cs = sm.prepare(pack, cuts, allow_hyperstatic=True)
-        res = sm.analyse(comm, cs, e0=e0)
+        res = sm.analyze(comm, cs, e0=e0)
         ext = res.e > res.e0
         assert np.all(res.modulated_energy <= cs.kappa * cs.z_max * res.grad2)
         assert np.all(res.trial_energy[ext] <= res.omega_L2)
@@ -329,8 +329,8 @@ def test_block_and_krylov_bases_agree(comm, packs, name, cut):
 def test_block_start_does_not_depend_on_the_rank_layout():
     """The random start is drawn in fixed row blocks: any split of the rows gives the same
     global matrix."""
-    whole = sm._random_block(0, 10000, 5, seed=3)
-    parts = np.concatenate([sm._random_block(a, z, 5, seed=3)
+    whole = sm.random_block(0, 10000, 5, seed=3)
+    parts = np.concatenate([sm.random_block(a, z, 5, seed=3)
                             for a, z in [(0, 2999), (2999, 3072), (3072, 7001), (7001, 10000)]])
     assert np.array_equal(whole, parts)
 

@@ -5,7 +5,7 @@ observables, the stress-term physics of Section IV, and bad input."""
 import numpy as np
 import pytest
 
-from parjam import env, hessian, io, network, observables, spectrum
+from parjam import cli, env, io, network, observables, solver_choice, spectrum
 from parjam.errors import ParjamError, UnjammedError
 from parjam.packing import make_jammed, random_packing
 from parjam.system import Packing
@@ -293,4 +293,42 @@ def test_auto_method_choice():
     assert spectrum.choose_method("auto", 3000, None) == "dense"
     assert spectrum.choose_method("auto", 3001, None) == "sinvert"
     assert spectrum.choose_method("auto", 3001, (0.0, 0.1)) == "slice"
-    assert hessian.KINDS == spectrum.MATRICES
+    assert spectrum.choose_method("auto", 3001, (0.0, 0.1), k=5, n_modes=2998) == "slice"
+    # the k lowest modes between SMALL_DOF and PARTIAL_DENSE_MAX_DOF (docs/speed-accuracy.md)
+    assert spectrum.choose_method("auto", 1000, None, k=10, n_modes=997) == "sinvert"
+    assert spectrum.choose_method("auto", 1000, None, k=150, n_modes=997) == "dense"
+    assert spectrum.choose_method("auto", 1000, None, k=10, n_modes=997, tol=1e-13) == "dense"
+    assert spectrum.choose_method("auto", 400, None, k=1, n_modes=397) == "dense"
+    assert spectrum.choose_method("sinvert", 100, None, k=1, n_modes=97) == "sinvert"
+
+
+def test_solver_policy_whole_spectrum_and_limits():
+    """The one policy (parjam.solver_choice) of modes, scenes and lengths: whole spectra by dense
+    up to WHOLE_MAX_DOF, then KPM when D(omega) alone is wanted, else a one-line error; a
+    window and k together beyond dense by slicing and shift-and-invert; moved limits obeyed."""
+    choose = solver_choice.choose_solver
+    big = solver_choice.WHOLE_MAX_DOF
+    assert choose(big, big - 3, whole=True) == "dense"
+    assert choose(big + 1, big - 2, whole=True, dos_only=True) == "kpm"
+    with pytest.raises(ParjamError, match="beyond dense"):
+        choose(big + 1, big - 2, whole=True)
+    assert choose(5000, 4997, k=10, window=(0.0, 0.1)) == "slice+sinvert"
+    no_dense = solver_choice.Limits(partial_dense_max_dof=0)
+    assert choose(192, 189, k=5, limits=no_dense) == "sinvert"
+    assert choose(192, 189, window=(0.0, 0.3), limits=no_dense) == "slice"
+    with pytest.raises(ParjamError):
+        choose(1200, 1197, whole=True, limits=solver_choice.Limits(whole_max_dof=1000))
+
+
+def test_matrices_are_the_three_terms_of_eq_1(jammed):
+    """Every name in MATRICES is a matrix of Eq. (1) that the commands offer, and the full one
+    is the sum of the other two, D = M + M'."""
+    assert set(spectrum.MATRICES) == {"full", "relaxed", "stress"}
+    full, relaxed, stress = (spectrum.dense_matrix(jammed, kind) for kind in
+                             ("full", "relaxed", "stress"))
+    np.testing.assert_allclose(full, relaxed + stress, atol=1e-13 * np.abs(full).max())
+    assert np.abs(stress).max() > 1e-8 * np.abs(relaxed).max()  # the sum is not trivial
+    sub = next(a for a in cli.build_parser()._actions if a.dest == "command")
+    for command in ("modes", "dos"):
+        matrix = next(a for a in sub.choices[command]._actions if a.dest == "matrix")
+        assert tuple(matrix.choices) == spectrum.MATRICES, command

@@ -5,7 +5,9 @@ import sys
 
 import numpy as np
 
+from parjam.commands import parse_pair
 from parjam.errors import ParjamError
+from parjam.spectrum import MATRICES
 
 
 def add_parser(sub):
@@ -27,7 +29,7 @@ def add_parser(sub):
                    help="spectra: average spectrum files (default); kpm: D(omega) of packing "
                    "files by the kernel polynomial method (distributed MatMult only, no "
                    "eigensolver: for N beyond dense and slicing)")
-    k.add_argument("--matrix", default="full", choices=("full", "relaxed", "stress"),
+    k.add_argument("--matrix", default="full", choices=MATRICES,
                    help="kpm: matrix of Eq. (1) (default full)")
     k.add_argument("--moments", type=int, default=256, help="kpm: Chebyshev moments (256)")
     k.add_argument("--probes", type=int, default=16, help="kpm: random probe vectors (16)")
@@ -70,7 +72,6 @@ def ensemble(specs, bins, log, omega_min, plateau):
 
 def run(args):
     from parjam import env, io, modes_io, observables
-    from parjam.commands.modes import parse_pair
 
     PETSc = env.petsc()
     rank = PETSc.COMM_WORLD.getRank()
@@ -115,7 +116,6 @@ def kpm_ensemble(comm, paths, args, plateau, progress):
     """KPM D(omega) of each packing on common bins (up to the lowest upper bound of the files),
     D0 and omega* each; mean and standard error over files (over probes for one file)."""
     from parjam import io, kpm, observables, spectrum
-    from parjam.commands.modes import parse_pair
 
     bounds = parse_pair(args.kpm_bounds, "--kpm-bounds") if args.kpm_bounds else None
     results = []

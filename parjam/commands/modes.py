@@ -5,7 +5,11 @@ import sys
 
 import numpy as np
 
+from parjam import env, io, modes_io, spectrum
+from parjam.commands import parse_pair
 from parjam.errors import ParjamError
+from parjam.plot import spectra as plot_spectra
+from parjam.progress import Progress
 
 EXIT_INCOMPLETE = 4  # some requested pairs did not converge to the tolerance
 MAX_BINS = 1_000_000
@@ -20,13 +24,13 @@ def add_parser(sub):
         "transverse and longitudinal sums; D(omega) per mode with D0 and omega*. SLEPc objects "
         "take options with the prefix modes_ (-modes_eps_view, -modes_st_mat_mumps_icntl_7 5).")
     p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
-    p.add_argument("--matrix", nargs="+", default=["full"], choices=("full", "relaxed", "stress"),
+    p.add_argument("--matrix", nargs="+", default=["full"], choices=spectrum.MATRICES,
                    help="one or more matrices (default full); several give one file each, "
                    "OUT with .MATRIX before .h5, e.g. --matrix full relaxed for Fig. 'compare'")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--k", type=int, help="number of lowest non-translational modes")
     g.add_argument("--window", help="frequency window WA,WB: every mode with WA <= omega <= WB")
-    p.add_argument("--method", default="auto", choices=("auto", "dense", "sinvert", "slice"),
+    p.add_argument("--method", default="auto", choices=spectrum.METHODS,
                    help="auto: --window: dense LAPACK up to 3000 dof, else slice; --k: "
                    "sinvert, or dense up to 3000 dof when N is tiny (<= 400 dof), k >= 15%% of "
                    "the modes or --tol < 1e-12 (measured crossovers, docs/speed-accuracy.md)")
@@ -43,17 +47,6 @@ def add_parser(sub):
     p.add_argument("--plot", help="PNG of D(omega), eps_perp/eps_par and participation")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(run=run)
-
-
-def parse_pair(text, name):
-    """'A,B' -> (A, B) floats, or a one-line error."""
-    try:
-        a, b = (float(x) for x in text.split(","))
-    except (ValueError, AttributeError):
-        raise ParjamError(f"{name} must be two numbers A,B, got {text!r}") from None
-    if not (np.isfinite(a) and np.isfinite(b)):
-        raise ParjamError(f"{name} must be finite, got {text!r}")
-    return a, b
 
 
 def output_paths(out, matrices):
@@ -93,9 +86,6 @@ def summary_line(kind, spec, dos):
 
 
 def run(args):
-    from parjam import env, io, modes_io, spectrum
-    from parjam.progress import Progress
-
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
     rank = comm.getRank()
@@ -122,16 +112,12 @@ def run(args):
         if not spec.complete:
             code = EXIT_INCOMPLETE
     if args.plot and rank == 0:
-        from parjam.plot import spectra as plot_spectra
-
         plot_spectra.spectra_figure([modes_io.read_spectrum(p) for p in written.values()],
                                     args.plot)
     return code
 
 
 def dos_or_none(spec, system, args):
-    from parjam import modes_io
-
     if not np.any(spec.physical):  # zero modes (floppy) are no vibrations: not in D(omega)
         return None
     return modes_io.dos_record(spec.frequency[spec.physical], system.n_modes, args.bins, args.log_bins,
@@ -139,8 +125,6 @@ def dos_or_none(spec, system, args):
 
 
 def write(path, spec, system, packing, dos, prov):
-    from parjam import modes_io
-
     empty = {"omega": np.zeros(0), "edges": np.zeros(0), "density": np.zeros(0),
              "note": "no positive frequency"}
     try:

@@ -9,8 +9,11 @@ import numpy as np
 
 from parjam.errors import ParjamError
 from parjam.packing import DISPERSITIES
+from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DPHI, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
+                             DEFAULT_PHI_START, DEFAULT_RATIO, LADDERS, PHIC_METHODS,
+                             PackingProtocol)
+from parjam.ranks import member_groups
 
-DEFAULT_PHI_START = {2: 0.86, 3: 0.66}
 MAX_MEMBERS = 1_000_000
 
 
@@ -24,29 +27,29 @@ def add_parser(sub):
     p.add_argument("--dim", type=int, default=3, help="dimension d, 2 or 3 (default 3)")
     p.add_argument("--n", type=int, default=256, help="number of particles (>= 16)")
     p.add_argument("--dispersity", default="mono", help="mono | bi (50:50) | poly (uniform)")
-    p.add_argument("--ratio", type=float, default=1.4,
+    p.add_argument("--ratio", type=float, default=DEFAULT_RATIO,
                    help="large/small diameter ratio for bi, width (max/min) for poly (1.4)")
-    p.add_argument("--alpha", type=float, default=2.0, help="potential exponent (2 harmonic, "
-                   "2.5 Hertz); must be > 1")
+    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
+                   help="potential exponent (2 harmonic, 2.5 Hertz); must be > 1")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--dphi", type=float, nargs="+", help="ladder of phi - phi_c (default "
                    "1e-6 1e-4 1e-2)")
     g.add_argument("--pressure", type=float, nargs="+", help="target pressures instead")
     g.add_argument("--phi", type=float, help="quench at this fixed phi only (no phi_c search)")
-    p.add_argument("--phic-method", choices=("bisect", "extrapolate"), default="bisect",
+    p.add_argument("--phic-method", choices=PHIC_METHODS, default="bisect",
                    help="bisect: O'Hern bisection to E/N in --energy-window (exact, slow for "
                    "large N); extrapolate: decompress from a jammed start at --phi-start, "
                    "phi_c = phi - alpha E phi/(p V) from the state nearest the smallest dphi "
                    "(no phi_c file; agrees with the bisection of the same configuration to "
                    "1-2%% of dphi at 1e-3, < 0.6%% at 1e-5; for large N)")
-    p.add_argument("--ladder", choices=("compress", "decompress"), default="compress",
+    p.add_argument("--ladder", choices=LADDERS, default="compress",
                    help="compress up from phi_c, or decompress from the largest dphi downwards")
     p.add_argument("--phi-start", type=float, help="phi of the random start (0.86 in 2D, "
                    "0.66 in 3D)")
     p.add_argument("--seed", type=int, default=0, help="ensemble seed (member m uses [seed, m])")
     p.add_argument("--members", type=int, default=1, help="ensemble size")
-    p.add_argument("--ftol", type=float, default=1e-13, help="max |F| tolerance (1e-13)")
-    p.add_argument("--energy-window", type=float, nargs=2, default=(1e-16, 2e-16),
+    p.add_argument("--ftol", type=float, default=DEFAULT_FTOL, help="max |F| tolerance (1e-13)")
+    p.add_argument("--energy-window", type=float, nargs=2, default=DEFAULT_ENERGY_WINDOW,
                    metavar=("LOW", "HIGH"), help="E/N window defining phi_c (1e-16 2e-16)")
     p.add_argument("--no-phic-file", action="store_true", help="do not write the phi_c state")
     p.add_argument("--out", default="packings", help="output directory (default ./packings)")
@@ -97,29 +100,11 @@ def validate(args):
         if not (0.0 < p < 10.0) or not np.isfinite(p):
             raise ParjamError(f"--pressure values must lie in (0, 10), got {p}")
     if args.phi is None and args.pressure is None and args.dphi is None:
-        args.dphi = [1e-6, 1e-4, 1e-2]
+        args.dphi = list(DEFAULT_DPHI)
     if args.phic_method == "extrapolate" and args.phi is not None:
         raise ParjamError("--phic-method extrapolate needs --dphi or --pressure, not --phi")
     if args.phi_start is None:
         args.phi_start = DEFAULT_PHI_START[args.dim]
-
-
-def member_groups(world, members, todo=None):
-    """Split the ranks into min(members, size) groups; member m goes to group m % ngroups.
-
-    ``todo`` (the members still to compute on a resumed run) keeps that assignment, so that a
-    member is computed by a group of the same size as in an uninterrupted run (bitwise the same
-    packing)."""
-    from parjam import env
-
-    PETSc = env.petsc()
-    mpi = world.tompi4py()
-    ngroups = min(members, mpi.Get_size())
-    color = mpi.Get_rank() * ngroups // mpi.Get_size()
-    sub = mpi.Split(color, mpi.Get_rank())
-    todo = range(members) if todo is None else todo
-    mine = [m for m in todo if m % ngroups == color]
-    return PETSc.Comm(sub), mine
 
 
 def prepare_output(args, params):
@@ -191,7 +176,8 @@ def _run(args):
     PETSc = env.petsc()
     world = PETSc.COMM_WORLD
     mpi = world.tompi4py()
-    params = manifest.run_parameters(args)
+    protocol = PackingProtocol.from_namespace(args)
+    params = manifest.run_parameters(protocol)
     outcome = None
     if world.getRank() == 0:
         try:
@@ -215,7 +201,7 @@ def _run(args):
     stage = PETSc.Log.Stage("parjam pack")
     stage.push()
     for m in mine:
-        rows += pack_member(args, m, comm, progress.sub(f"member {m + 1}/{args.members}: "),
+        rows += pack_member(protocol, m, comm, progress.sub(f"member {m + 1}/{args.members}: "),
                             params)
     stage.pop()
     all_rows = mpi.gather(rows, root=0)

@@ -104,7 +104,7 @@ def run(args):
     cs = sm.prepare(pack, planes_from(args, pack.d), args.allow_hyperstatic)
     progress(f"N' = {cs.n} non-rattlers, Nc = {len(cs.contacts)} ({cs.excess:+d} from "
              f"isostatic), q = {cs.q} cut contacts on {len(cs.planes)} plane(s)")
-    res = sm.analyse(comm, cs, args.e0, args.bins, progress, args.basis)
+    res = sm.analyze(comm, cs, args.e0, args.bins, progress, args.basis)
     res.solver["peak_rss_mb"] = peak_rss_mb(comm)
     prov = io.provenance(comm.getSize(), {
         "command": "softmodes", "input": os.path.abspath(args.packing),

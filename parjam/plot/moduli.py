@@ -1,5 +1,6 @@
-"""Figures of issue 8: moduli against dphi with fitted slopes, the structure factors F_T and F_L
-of the eigenmodes with the sound lines, and the lengths l*, l_L, l_T against dz.
+"""Figures of the moduli and lengths: moduli against dphi with fitted slopes, the structure
+factors F_T and F_L of the eigenmodes with the sound lines, and the lengths l*, l_L, l_T
+against dz.
 
     python -m parjam.plot.moduli scaling bench-out/scaling_d3_n256.json [more.json] --out m.png
     python -m parjam.plot.moduli structure lengths.h5 --out sf.png      # from parjam lengths

@@ -4,8 +4,11 @@ A results directory holds one subdirectory per bundled scene (``SCENES``: ``pape
 ``paper-2d``, ``paper-3d-10x``, ``hertz-3d``, ``softmodes-3d``, each the ``--out`` of
 ``parjam run``), or the summary files of one ``parjam run`` directly.  Each figure of
 ``FIGURES`` uses the systems of its group that hold the data it needs (its ``needs``), fits
-its laws (parjam.plot.fits) into a ``fits`` dict and is drawn to ``repro_<name>.png``.
+its laws (parjam.fits) into a ``fits`` dict and is drawn to ``repro_<name>.png``.
 ``parjam plot RESULTS --img DIR`` and ``scripts/reproduce.py`` call :func:`reproduce`.
+
+Why one file of ~530 lines: every figure is a small function next to the laws it fits, and the
+``FIGURES`` table that drives them reads best in one place.
 """
 
 import glob
@@ -14,11 +17,13 @@ import os
 from dataclasses import dataclass
 from typing import Callable
 
+import h5py
 import numpy as np
 
 from parjam.errors import ParjamError
 from parjam.plot import atomic_png, pyplot
-from parjam.plot.fits import fit_eq33, fit_power, law, log_slope
+from parjam.fits import fit_eq33, fit_power, law, log_slope
+from parjam.study.summary import read_summary
 
 #: figure group -> the bundled scenes (subdirectories of a results directory) that feed it
 SCENES = {"paper": ("paper-3d", "paper-2d", "paper-3d-10x"), "hertz": ("hertz-3d",),
@@ -29,12 +34,8 @@ DPI = 80
 # --------------------------------------------------------------------------- summaries
 
 def read(path):
-    """One summary file (parjam.commands.run.write_summary) as nested dicts; ParjamError if it
+    """One summary file (parjam.study.summary.write_summary) as nested dicts; ParjamError if it
     is not one."""
-    import h5py
-
-    from parjam.commands.run import read_summary
-
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise ParjamError(f"{path}: no such file")

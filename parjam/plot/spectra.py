@@ -4,6 +4,7 @@ the transverse/longitudinal ratio eps_perp/eps_par per mode (Fig. "trans") and p
 import numpy as np
 
 from parjam.plot import pyplot
+from parjam.study.summary import read_summary
 
 
 def _label(spec):
@@ -47,3 +48,25 @@ def ensemble_dos_figure(omega, density, error, path, label="ensemble", omega_sta
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def dos_pictures(path, stem, dpi):
+    """D(omega) of every matrix, the states overlaid (log-linear, as the paper's figures), from
+    a scene's summary file (parjam.study.summary) to STEM-dos-MATRIX.png."""
+    s = read_summary(path)
+    states = [x.decode() for x in s["attrs"]["states"]]
+    kinds = sorted({k for lab in states if lab in s for k in s[lab].get("spectrum", {})})
+    plt = pyplot()
+    for kind in kinds:
+        fig, ax = plt.subplots(figsize=(5, 3.6))
+        for lab in states:
+            dos = s.get(lab, {}).get("spectrum", {}).get(kind, {}).get("dos")
+            if dos is not None:
+                ax.errorbar(dos["omega"], dos["density"], yerr=dos["density_error"], fmt="-",
+                            lw=1, label=lab)
+        ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$ per mode",
+               title=f"{s['attrs']['system']}: {kind}")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(f"{stem}-dos-{kind}.png", dpi=dpi)
+        plt.close(fig)

@@ -29,7 +29,7 @@ def main():
     from parjam.ensemble import member_rng
     from parjam.packing import Jammer, random_packing
 
-    plain_fire, plain_minimise = minimize.fire, minimize.minimise
+    plain_fire, plain_minimise = minimize.fire, minimize.minimize
     calls = [0]
 
     def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snapshot=None):
@@ -40,7 +40,7 @@ def main():
             if calls[0] >= 3 and step % every == 0:
                 f = ff.vec()
                 energy = ff.evaluate(f)
-                below = {str(s): minimize._factor(ff, s) for s in SHIFTS}
+                below = {str(s): minimize.factor_shifted(ff, s) for s in SHIFTS}
                 print(json.dumps({"minimisation": calls[0], "step": step, "E/N": energy / ff.n,
                                   "fmax": ff.max_norm(f), "negative_below": below}), flush=True)
                 f.destroy()
@@ -54,7 +54,7 @@ def main():
               f"Newton steps, {time.perf_counter() - t:.1f} s", flush=True)
         return r
 
-    minimize.fire, minimize.minimise = fire, minimise
+    minimize.fire, minimize.minimize = fire, minimise
     jam = Jammer(PETSc.COMM_SELF, random_packing(3, n, 0.70, rng=member_rng(seed, 0)))
     phi_c = jam.find_phi_c_from_above(1e-3).info["phi_c"]
     jam.ladder(phi_c, [1e-3])

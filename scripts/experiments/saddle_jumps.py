@@ -29,22 +29,22 @@ stats = {"checks": 0, "jumps": 0, "t_checks": 0.0}
 
 def most_negative_mode(ff):
     """(lambda, eigenvector Vec) of the most negative eigenvalue of H, or None."""
-    if not minimize._factor(ff, S0):
+    if not minimize.factor_shifted(ff, S0):
         return None
     s = 1e-8
-    while minimize._factor(ff, s):  # a positive definite shift, by decades
+    while minimize.factor_shifted(ff, s):  # a positive definite shift, by decades
         s *= 10.0
         if s > 1e-1:
             return None
     s *= 2.0
-    minimize._factor(ff, s)
+    minimize.factor_shifted(ff, s)
     ksp = ff.newton_ksp
     Hs = ksp.getOperators()[0]
     v, w = ff.vec(), ff.vec()
     v.array[:] = np.random.default_rng(0).standard_normal(v.getLocalSize())
     lam_old = None
     for _ in range(30):
-        minimize._remove_translations(ff, v)
+        minimize.remove_translations(ff, v)
         v.scale(1.0 / v.norm())
         ksp.solve(v, w)
         w.copy(v)

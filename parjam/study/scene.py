@@ -1,38 +1,25 @@
-"""Scenes: a study described once in a TOML file, validated and planned.
+"""Scenes: a study described once in a TOML file, parsed and validated.
 
 A scene names the systems (d, N, dispersity, ratio, alpha), the protocol (a dphi ladder or target
 pressures), the ensemble (members, seed) and the observables wanted.  :func:`load` parses it with
 the standard library's tomllib into a :class:`Scene`; every unknown key, wrong type or impossible
 combination is a one-line :class:`ParjamError` naming the key, raised before any work starts.
-:func:`plan` derives the stages from the observables and computes only what they need:
-
-- ``pack``: the packings of every member (always);
-- ``network``: z, dz, p of every state (always: cheap, and the other stages report them);
-- ``spectrum`` per matrix (full / relaxed / stress): only for the states and matrices an
-  observable asks for; the solver per state follows from what is needed there:
-  the whole spectrum (D(omega), omega* without a window) -> dense LAPACK, eigenvalues only unless
-  per-mode sums are wanted; a window -> SLEPc slicing; the k lowest modes -> SLEPc
-  shift-and-invert (dense below ``solver.small_dof``).  No relaxed matrix unless asked for, no
-  eigenvectors stored unless ``lowest.vectors``;
-- ``moduli``, ``softmodes``, ``fluctuations`` only when asked for;
-- ``summary``: ensemble means, errors and D(omega) averages of everything computed.
+parjam.study.plan derives the stages from it.
 
 The format is documented in README.md ("Scenes") and by the bundled scenes in ``scenes/``.
 """
 
-import hashlib
-import json
 import math
 import os
 import tomllib
 from dataclasses import dataclass, field
 
+from parjam import softmodes, solver_choice
 from parjam.errors import ParjamError
-
-MATRICES = ("full", "relaxed", "stress")
-DISPERSITIES = ("mono", "bi", "poly")
-DENSE_MAX_DOF = 8000  # whole spectrum by dense LAPACK up to this many degrees of freedom
-SMALL_DOF = 600  # the k lowest modes by dense LAPACK below this (cheaper than a factorisation)
+from parjam.packing import DISPERSITIES
+from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
+                             DEFAULT_RATIO, LADDERS, PHIC_METHODS, PackingProtocol)
+from parjam.spectrum import MATRICES
 
 
 # --------------------------------------------------------------------------- the parsed scene
@@ -60,8 +47,8 @@ class Protocol:
     dphi: list = None
     pressure: list = None
     ladder: str = "compress"
-    ftol: float = 1e-13
-    energy_window: tuple = (1e-16, 2e-16)
+    ftol: float = DEFAULT_FTOL
+    energy_window: tuple = DEFAULT_ENERGY_WINDOW
     phi_start: float = None
     phic_method: str = "bisect"  # or "extrapolate": no phi_c state is written (parjam.ensemble)
 
@@ -103,6 +90,16 @@ class Scene:
     seed: int
     observables: dict  # name -> dict of validated options
     solver: dict = field(default_factory=dict)
+
+    def packing_protocol(self, system, out):
+        """The packing protocol (parjam.protocol) of one system's pack stage, written to
+        ``out``: what ``parjam pack`` with the same settings would make."""
+        p = self.protocol
+        return PackingProtocol(
+            dim=system.d, n=system.n, out=out, alpha=system.alpha, dispersity=system.dispersity,
+            ratio=system.ratio, seed=self.seed, members=self.members, dphi=p.dphi,
+            pressure=p.pressure, ladder=p.ladder, phic_method=p.phic_method,
+            phi_start=p.phi_start, ftol=p.ftol, energy_window=p.energy_window)
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -267,9 +264,9 @@ def _systems(raw, path):
         for n in ns:
             if isinstance(n, bool) or not isinstance(n, int) or not 16 <= n <= 50_000_000:
                 t.fail("N", f"must be integers in [16, 5e7], got {n!r}")
-        disp = t.str("dispersity", "bi" if d == 2 else "mono", DISPERSITIES)
-        ratio = t.float("ratio", 1.4, lo=1.0, hi=10.0)
-        alpha = t.float("alpha", 2.0, lo=1.0, lo_open=True, hi=10.0)
+        disp = t.str("dispersity", DEFAULT_DISPERSITY[d], DISPERSITIES)
+        ratio = t.float("ratio", DEFAULT_RATIO, lo=1.0, hi=10.0)
+        alpha = t.float("alpha", DEFAULT_ALPHA, lo=1.0, lo_open=True, hi=10.0)
         name = t.str("name", None)
         t.done()
         for n in ns:
@@ -292,15 +289,15 @@ def _protocol(raw, path):
     pressure = t.numbers("pressure", None, lo=0.0, hi=10.0, lo_open=True)
     if (dphi is None) == (pressure is None):
         t.fail("dphi", "give exactly one of dphi = [...] (a ladder) or pressure = [...]")
-    ladder = t.str("ladder", "compress", ("compress", "decompress"))
+    ladder = t.str("ladder", "compress", LADDERS)
     if pressure is not None and t.has("ladder"):
         t.fail("ladder", "applies to a dphi ladder, not to target pressures")
-    ftol = t.float("ftol", 1e-13, lo=0.0, hi=1e-3, lo_open=True)
-    window = t.numbers("energy_window", [1e-16, 2e-16], lo=0.0, lo_open=True)
+    ftol = t.float("ftol", DEFAULT_FTOL, lo=0.0, hi=1e-3, lo_open=True)
+    window = t.numbers("energy_window", list(DEFAULT_ENERGY_WINDOW), lo=0.0, lo_open=True)
     if len(window) != 2 or not window[0] < window[1]:
         t.fail("energy_window", f"must be [LOW, HIGH] with 0 < LOW < HIGH, got {window}")
     phi_start = t.float("phi_start", None, lo=0.05, hi=1.5)
-    phic_method = t.str("phic_method", "bisect", ("bisect", "extrapolate"))
+    phic_method = t.str("phic_method", "bisect", PHIC_METHODS)
     t.done()
     vals = dphi if dphi is not None else pressure
     if len({f"{v:.1e}" for v in vals}) != len(vals):
@@ -313,8 +310,9 @@ def _protocol(raw, path):
 def _solver(raw, path):
     t = _Table(raw, "solver", path)
     out = {"tol": t.float("tol", 1e-10, lo=0.0, hi=1e-2, lo_open=True),
-           "dense_max_dof": t.int("dense_max_dof", DENSE_MAX_DOF, lo=1, hi=40_000),
-           "small_dof": t.int("small_dof", SMALL_DOF, lo=0)}
+           "dense_max_dof": t.int("dense_max_dof", solver_choice.WHOLE_MAX_DOF, lo=1,
+                                  hi=40_000),
+           "small_dof": t.int("small_dof", solver_choice.PARTIAL_DENSE_MAX_DOF, lo=0)}
     t.done()
     return out
 
@@ -436,15 +434,13 @@ def _obs_trans(t, protocol, ladder, lowest, min_modes):
 
 
 def _obs_softmodes(t, protocol, ladder, lowest, min_modes):
-    from parjam import softmodes as sm
-
     cuts = t.strings("cuts", None)
     sub = t.int("subdivide", None, lo=1, hi=1000)
     if cuts is None and sub is None:
         cuts = ["x=0.5"]
     for c in cuts or []:
         try:
-            sm.parse_cut(c, 3)
+            softmodes.parse_cut(c, 3)
         except ParjamError as exc:
             t.fail("cuts", str(exc).replace("--cut ", ""))
     return {"cuts": cuts or [], "subdivide": sub,
@@ -466,200 +462,3 @@ def _obs_fluctuations(t, protocol, ladder, lowest, min_modes):
 
 def _obs_pictures(t, protocol, ladder, lowest, min_modes):
     return {"dpi": t.int("dpi", 90, lo=20, hi=600)}
-
-
-# --------------------------------------------------------------------------- the plan
-
-@dataclass
-class Stage:
-    """One unit of work for one system, done member by member (or once, for the summary)."""
-
-    kind: str  # pack | network | spectrum | moduli | softmodes | fluctuations | summary
-    system: System
-    params: dict  # what the stage computes; for spectra: per-state requirements and solver
-    deps: list  # keys of the stages it reads
-    states: list = field(default_factory=list)
-    matrix: str = None
-    key: str = ""
-    memory_mb: float = 0.0
-    seconds: float = 0.0
-
-    @property
-    def name(self):
-        tag = f"{self.kind}-{self.matrix}" if self.matrix else self.kind
-        return f"{tag}-{self.system.name}-{self.key}"
-
-    def solvers(self):
-        if self.kind != "spectrum":
-            search = ("phi_c extrapolated from above"
-                      if self.params.get("phic_method") == "extrapolate" else "O'Hern bisection")
-            return {"pack": f"FIRE + Newton (MUMPS), {search}", "network": "numpy",
-                    "moduli": "PETSc CG + MUMPS",
-                    "softmodes": "MUMPS inertia + block inverse iteration",
-                    "fluctuations": "numpy", "summary": "numpy"}.get(self.kind, "")
-        return {s: self.params[s]["solver"] for s in self.states}
-
-
-STAGE_FORMAT = 1  # bump when a stage's stored content changes: old results are then recomputed
-
-
-def stage_key(*parts):
-    blob = json.dumps([STAGE_FORMAT, parts], sort_keys=True, default=str).encode()
-    return hashlib.sha256(blob).hexdigest()[:12]
-
-
-def spectrum_needs(scene, system):
-    """Per (matrix, state): what the observables need of that spectrum."""
-    need = {}
-
-    def want(matrix, state, **kw):
-        d = need.setdefault(matrix, {}).setdefault(
-            state, {"all": False, "k": 0, "window": None, "per_mode": False, "vectors": False})
-        if kw.get("kpm_plateau"):
-            d["kpm_plateau"] = True  # only when asked: the other stage keys stay as they were
-        d["all"] |= kw.get("all", False)
-        d["k"] = max(d["k"], kw.get("k") or 0)
-        d["per_mode"] |= kw.get("per_mode", False)
-        d["vectors"] |= kw.get("vectors", False)
-        if kw.get("window") is not None:
-            w = kw["window"]
-            d["window"] = w if d["window"] is None else (min(d["window"][0], w[0]),
-                                                         max(d["window"][1], w[1]))
-
-    obs = scene.observables
-    if "dos" in obs:
-        o = obs["dos"]
-        for m in o["matrices"]:
-            for s in o["at"]:
-                want(m, s, all=o["window"] is None, window=o["window"])
-    if "omega_star" in obs:
-        o = obs["omega_star"]
-        for m in o["matrices"]:
-            for s in o["at"]:
-                want(m, s, all=o["window"] is None and o["k"] is None, window=o["window"],
-                     k=o["k"], kpm_plateau=o["plateau"] == "kpm")
-    if "lowest" in obs:
-        o = obs["lowest"]
-        for m in o["matrices"]:
-            for s in o["at"]:
-                want(m, s, k=o["k"], vectors=o["vectors"])
-    if "trans" in obs:
-        o = obs["trans"]
-        for s in o["at"]:
-            want(o["matrix"], s, all=o["k"] is None, k=o["k"], per_mode=True)
-    return need
-
-
-def choose_solver(req, system, solver):
-    """The cheapest solver that gives what the state needs (see the module doc)."""
-    dof = system.max_dof
-    if req["all"]:
-        if dof > solver["dense_max_dof"]:
-            raise ParjamError(
-                f"system {system.name}: the whole spectrum of {dof} degrees of freedom exceeds "
-                f"solver.dense_max_dof = {solver['dense_max_dof']}: give a window or k")
-        return "dense-eigh" if req["per_mode"] or req["vectors"] else "dense-eigvalsh"
-    if req["window"] is not None and req["k"]:
-        return "dense-eigh" if dof <= solver["small_dof"] else "slice+sinvert"
-    if req["window"] is not None:
-        return "dense-eigh" if dof <= solver["small_dof"] else "slice"
-    return "dense-eigh" if dof <= solver["small_dof"] else "sinvert"
-
-
-def estimate(stage, scene):
-    """Rough memory (MB, per rank) and time (s, one core, all members) of a stage."""
-    s, members = stage.system, scene.members
-    n, dof = s.n, s.max_dof
-    nstates = len(stage.states) or 1
-    if stage.kind == "pack":
-        # measured on this machine: 3D N = 512 full ladder 10-25 s, 2D N = 1024 ~80 s
-        per = 0.04 * n ** 1.1 * (3.0 if s.d == 2 else 1.0) * (1 + 0.15 * nstates)
-        if stage.params.get("phic_method") == "extrapolate":
-            per *= 0.4  # measured: 3D N = 10240, five states, 710 s per member (2 ranks busy)
-        return 50 + n * 2e-3, members * per
-    if stage.kind == "spectrum":
-        mem, sec = 0.0, 0.0
-        for st in stage.states:
-            sol = stage.params[st]["solver"]
-            if sol.startswith("dense"):
-                mem = max(mem, 3 * 8 * dof * dof / 1e6)
-                # measured: eigvalsh of 3000 x 3000 in 3.2 s on one core, eigh 7.7 s
-                sec += 0.12 * (dof / 1000.0) ** 3 * (1.0 if sol == "dense-eigvalsh" else 4.0)
-            else:
-                k = max(stage.params[st]["k"], 50)
-                mem = max(mem, 8 * dof * (k * 2 + 300) / 1e6)
-                sec += 1e-4 * dof ** 1.3 + 1e-3 * k * dof / 100
-        return 50 + mem, members * sec
-    if stage.kind == "moduli":
-        return 50 + 8 * dof * 300 / 1e6, members * nstates * (1e-3 * dof ** 1.2)
-    if stage.kind == "softmodes":
-        return 50 + 8 * dof * dof ** (2 / 3) * 2 / 1e6, members * nstates * 3e-4 * dof ** 1.4
-    return 50.0, members * nstates * 1e-4 * n
-
-
-def plan(scene):
-    """The stages of a scene, in order, each keyed by a hash of its inputs."""
-    stages = []
-    obs = scene.observables
-    for s in scene.systems:
-        base = {"system": s.key(), "protocol": scene.protocol.key(), "seed": scene.seed}
-        pack = Stage("pack", s, {"labels": scene.protocol.labels(),
-                                 "phic_method": scene.protocol.phic_method}, [],
-                     scene.protocol.labels())
-        pack.key = stage_key("pack", base)
-        net = Stage("network", s, {}, [pack.key], scene.protocol.labels())
-        net.key = stage_key("network", pack.key)
-        mine = [pack, net]
-        for matrix, per_state in sorted(spectrum_needs(scene, s).items()):
-            params = {}
-            for st, req in per_state.items():
-                params[st] = dict(req, solver=choose_solver(req, s, scene.solver))
-            states = [lab for lab in scene.protocol.labels() if lab in params]
-            sp = Stage("spectrum", s, params, [pack.key], states, matrix)
-            sp.key = stage_key("spectrum", matrix, pack.key, params, scene.solver["tol"])
-            mine.append(sp)
-        for kind in ("moduli", "softmodes", "fluctuations"):
-            if kind in obs:
-                o = {k: v for k, v in obs[kind].items() if k != "at"}
-                st = Stage(kind, s, o, [pack.key], obs[kind]["at"])
-                st.key = stage_key(kind, pack.key, o, st.states)
-                mine.append(st)
-        summ = Stage("summary", s, {"observables": obs, "members": scene.members},
-                     [x.key for x in mine], scene.protocol.labels())
-        summ.key = stage_key("summary", summ.deps, obs, scene.members)
-        mine.append(summ)
-        for st in mine:
-            st.memory_mb, st.seconds = estimate(st, scene)
-        stages += mine
-    return stages
-
-
-def describe(scene, stages):
-    """The --dry-run text: stages, sizes, solver per stage, estimated memory and time."""
-    lines = [f"scene {scene.name!r}: {len(scene.systems)} system(s), {scene.members} member(s), "
-             f"seed {scene.seed}; states {', '.join(scene.protocol.labels())}"
-             + (f" ({scene.protocol.ladder})" if scene.protocol.dphi else ""),
-             f"observables: {', '.join(scene.observables)}"]
-    total = 0.0
-    for st in stages:
-        s = st.system
-        head = f"  {st.kind + (' ' + st.matrix if st.matrix else ''):<17} {s.name:<22} " \
-               f"d={s.d} N={s.n} alpha={s.alpha:g}  key {st.key}"
-        lines.append(head)
-        if st.kind == "spectrum":
-            for state in st.states:
-                p = st.params[state]
-                what = ("all modes" if p["all"] else
-                        f"window {p['window']}" if p["window"] else f"lowest k={p['k']}")
-                extra = ", per-mode sums" if p["per_mode"] else ""
-                extra += ", eigenvectors stored" if p["vectors"] else ""
-                extra += ", D0 from KPM" if p.get("kpm_plateau") and not p["all"] else ""
-                lines.append(f"      {state:<12} {what}{extra}: {p['solver']}")
-        else:
-            lines.append(f"      states {', '.join(st.states)}; {st.solvers()}")
-        lines.append(f"      estimate: {st.memory_mb:.0f} MB per rank, {st.seconds:.0f} s of "
-                     f"one core")
-        total += st.seconds
-    lines.append(f"total estimate: {total:.0f} s of one core "
-                 f"({total / 60:.1f} min; divide by the ranks for members spread over them)")
-    return "\n".join(lines)

@@ -3,8 +3,8 @@
 Tables are (members, states) arrays, one row per ensemble member (as in the summary files of
 ``parjam run``); a bootstrap resample draws whole rows with replacement, so the x and y values
 of a member stay together.  The errors therefore cover member-to-member scatter only (not the
-choice of fit range or finite-size effects).  ``parjam.moduli.power_law_fit`` is the variant for
-an x shared by all members (no x resampling, exponent only).
+choice of fit range or finite-size effects).  An x shared by all members (a protocol's dphi or
+pressures) may be given as one row: it is then the same in every resample.
 """
 
 import warnings
@@ -32,9 +32,11 @@ def log_slope(x, y):
 
 def fit_power(X, Y, n_boot=N_BOOT, seed=0):
     """Power law mean(Y) = a mean(X)^b over the states (columns), means over members (rows,
-    NaN skipped), points with a non-positive mean left out; X and Y resampled together.
-    Returns exponent, its bootstrap error, prefactor and its error, members and points."""
-    X, Y = np.asarray(X, float), np.asarray(Y, float)
+    NaN skipped), points with a non-positive mean left out; X and Y resampled together (X may
+    be one row shared by all members).  Returns exponent, its bootstrap error, prefactor and
+    its error, members and points."""
+    Y = np.asarray(Y, float)
+    X = np.broadcast_to(np.asarray(X, float), Y.shape)
 
     def one(rows):
         x, y = np.nanmean(X[rows], axis=0), np.nanmean(Y[rows], axis=0)

@@ -1,0 +1,226 @@
+"""The plan of a scene (parjam.study.scene): the stages its observables need, each keyed by a
+hash of its inputs, with the solver per spectrum and rough estimates (``--dry-run``).
+
+:func:`plan` computes only what the observables need:
+
+- ``pack``: the packings of every member (always);
+- ``network``: z, dz, p of every state (always: cheap, and the other stages report them);
+- ``spectrum`` per matrix (full / relaxed / stress): only for the states and matrices an
+  observable asks for; the solver per state follows from what is needed there:
+  the whole spectrum (D(omega), omega* without a window) -> dense LAPACK, eigenvalues only unless
+  per-mode sums are wanted; a window -> SLEPc slicing; the k lowest modes -> SLEPc
+  shift-and-invert, by the policy of parjam.solver_choice (dense for windows and k up to
+  ``solver.small_dof``).  No relaxed matrix unless asked for, no
+  eigenvectors stored unless ``lowest.vectors``;
+- ``moduli``, ``softmodes``, ``fluctuations`` only when asked for;
+- ``summary``: ensemble means, errors and D(omega) averages of everything computed.
+"""
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+
+from parjam import solver_choice
+from parjam.errors import ParjamError
+from parjam.study.scene import System
+
+# --------------------------------------------------------------------------- the plan
+
+@dataclass
+class Stage:
+    """One unit of work for one system, done member by member (or once, for the summary)."""
+
+    kind: str  # pack | network | spectrum | moduli | softmodes | fluctuations | summary
+    system: System
+    params: dict  # what the stage computes; for spectra: per-state requirements and solver
+    deps: list  # keys of the stages it reads
+    states: list = field(default_factory=list)
+    matrix: str = None
+    key: str = ""
+    memory_mb: float = 0.0
+    seconds: float = 0.0
+
+    @property
+    def name(self):
+        tag = f"{self.kind}-{self.matrix}" if self.matrix else self.kind
+        return f"{tag}-{self.system.name}-{self.key}"
+
+    def solvers(self):
+        if self.kind != "spectrum":
+            search = ("phi_c extrapolated from above"
+                      if self.params.get("phic_method") == "extrapolate" else "O'Hern bisection")
+            return {"pack": f"FIRE + Newton (MUMPS), {search}", "network": "numpy",
+                    "moduli": "PETSc CG + MUMPS",
+                    "softmodes": "MUMPS inertia + block inverse iteration",
+                    "fluctuations": "numpy", "summary": "numpy"}.get(self.kind, "")
+        return {s: self.params[s]["solver"] for s in self.states}
+
+
+STAGE_FORMAT = 1  # bump when a stage's stored content changes: old results are then recomputed
+
+
+def stage_key(*parts):
+    blob = json.dumps([STAGE_FORMAT, parts], sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:12]
+
+
+def spectrum_needs(scene, system):
+    """Per (matrix, state): what the observables need of that spectrum."""
+    need = {}
+
+    def want(matrix, state, **kw):
+        d = need.setdefault(matrix, {}).setdefault(
+            state, {"all": False, "k": 0, "window": None, "per_mode": False, "vectors": False})
+        if kw.get("kpm_plateau"):
+            d["kpm_plateau"] = True  # only when asked: the other stage keys stay as they were
+        d["all"] |= kw.get("all", False)
+        d["k"] = max(d["k"], kw.get("k") or 0)
+        d["per_mode"] |= kw.get("per_mode", False)
+        d["vectors"] |= kw.get("vectors", False)
+        if kw.get("window") is not None:
+            w = kw["window"]
+            d["window"] = w if d["window"] is None else (min(d["window"][0], w[0]),
+                                                         max(d["window"][1], w[1]))
+
+    obs = scene.observables
+    if "dos" in obs:
+        o = obs["dos"]
+        for m in o["matrices"]:
+            for s in o["at"]:
+                want(m, s, all=o["window"] is None, window=o["window"])
+    if "omega_star" in obs:
+        o = obs["omega_star"]
+        for m in o["matrices"]:
+            for s in o["at"]:
+                want(m, s, all=o["window"] is None and o["k"] is None, window=o["window"],
+                     k=o["k"], kpm_plateau=o["plateau"] == "kpm")
+    if "lowest" in obs:
+        o = obs["lowest"]
+        for m in o["matrices"]:
+            for s in o["at"]:
+                want(m, s, k=o["k"], vectors=o["vectors"])
+    if "trans" in obs:
+        o = obs["trans"]
+        for s in o["at"]:
+            want(o["matrix"], s, all=o["k"] is None, k=o["k"], per_mode=True)
+    return need
+
+
+def choose_solver(req, system, solver):
+    """The solver of one state's spectrum by the one policy (parjam.solver_choice), with the
+    scene's [solver] limits; a dense solve is "dense-eigvalsh" (eigenvalues only) unless
+    per-mode sums or vectors are wanted."""
+    dof = system.max_dof
+    limits = solver_choice.Limits(whole_max_dof=solver["dense_max_dof"],
+                                  partial_dense_max_dof=solver["small_dof"])
+    try:
+        sol = solver_choice.choose_solver(dof, dof - system.d, k=req["k"] or None,
+                                          window=req["window"], whole=req["all"],
+                                          tol=solver["tol"], limits=limits)
+    except ParjamError:
+        raise ParjamError(
+            f"system {system.name}: the whole spectrum of {dof} degrees of freedom exceeds "
+            f"solver.dense_max_dof = {solver['dense_max_dof']}: give a window or k") from None
+    if sol != "dense":
+        return sol
+    return "dense-eigvalsh" if req["all"] and not (req["per_mode"] or req["vectors"]) \
+        else "dense-eigh"
+
+
+def estimate(stage, scene):
+    """Rough memory (MB, per rank) and time (s, one core, all members) of a stage."""
+    s, members = stage.system, scene.members
+    n, dof = s.n, s.max_dof
+    nstates = len(stage.states) or 1
+    if stage.kind == "pack":
+        # measured on this machine: 3D N = 512 full ladder 10-25 s, 2D N = 1024 ~80 s
+        per = 0.04 * n ** 1.1 * (3.0 if s.d == 2 else 1.0) * (1 + 0.15 * nstates)
+        if stage.params.get("phic_method") == "extrapolate":
+            per *= 0.4  # measured: 3D N = 10240, five states, 710 s per member (2 ranks busy)
+        return 50 + n * 2e-3, members * per
+    if stage.kind == "spectrum":
+        mem, sec = 0.0, 0.0
+        for st in stage.states:
+            sol = stage.params[st]["solver"]
+            if sol.startswith("dense"):
+                mem = max(mem, 3 * 8 * dof * dof / 1e6)
+                # measured: eigvalsh of 3000 x 3000 in 3.2 s on one core, eigh 7.7 s
+                sec += 0.12 * (dof / 1000.0) ** 3 * (1.0 if sol == "dense-eigvalsh" else 4.0)
+            else:
+                k = max(stage.params[st]["k"], 50)
+                mem = max(mem, 8 * dof * (k * 2 + 300) / 1e6)
+                sec += 1e-4 * dof ** 1.3 + 1e-3 * k * dof / 100
+        return 50 + mem, members * sec
+    if stage.kind == "moduli":
+        return 50 + 8 * dof * 300 / 1e6, members * nstates * (1e-3 * dof ** 1.2)
+    if stage.kind == "softmodes":
+        return 50 + 8 * dof * dof ** (2 / 3) * 2 / 1e6, members * nstates * 3e-4 * dof ** 1.4
+    return 50.0, members * nstates * 1e-4 * n
+
+
+def plan(scene):
+    """The stages of a scene, in order, each keyed by a hash of its inputs."""
+    stages = []
+    obs = scene.observables
+    for s in scene.systems:
+        base = {"system": s.key(), "protocol": scene.protocol.key(), "seed": scene.seed}
+        pack = Stage("pack", s, {"labels": scene.protocol.labels(),
+                                 "phic_method": scene.protocol.phic_method}, [],
+                     scene.protocol.labels())
+        pack.key = stage_key("pack", base)
+        net = Stage("network", s, {}, [pack.key], scene.protocol.labels())
+        net.key = stage_key("network", pack.key)
+        mine = [pack, net]
+        for matrix, per_state in sorted(spectrum_needs(scene, s).items()):
+            params = {}
+            for st, req in per_state.items():
+                params[st] = dict(req, solver=choose_solver(req, s, scene.solver))
+            states = [lab for lab in scene.protocol.labels() if lab in params]
+            sp = Stage("spectrum", s, params, [pack.key], states, matrix)
+            sp.key = stage_key("spectrum", matrix, pack.key, params, scene.solver["tol"])
+            mine.append(sp)
+        for kind in ("moduli", "softmodes", "fluctuations"):
+            if kind in obs:
+                o = {k: v for k, v in obs[kind].items() if k != "at"}
+                st = Stage(kind, s, o, [pack.key], obs[kind]["at"])
+                st.key = stage_key(kind, pack.key, o, st.states)
+                mine.append(st)
+        summ = Stage("summary", s, {"observables": obs, "members": scene.members},
+                     [x.key for x in mine], scene.protocol.labels())
+        summ.key = stage_key("summary", summ.deps, obs, scene.members)
+        mine.append(summ)
+        for st in mine:
+            st.memory_mb, st.seconds = estimate(st, scene)
+        stages += mine
+    return stages
+
+
+def describe(scene, stages):
+    """The --dry-run text: stages, sizes, solver per stage, estimated memory and time."""
+    lines = [f"scene {scene.name!r}: {len(scene.systems)} system(s), {scene.members} member(s), "
+             f"seed {scene.seed}; states {', '.join(scene.protocol.labels())}"
+             + (f" ({scene.protocol.ladder})" if scene.protocol.dphi else ""),
+             f"observables: {', '.join(scene.observables)}"]
+    total = 0.0
+    for st in stages:
+        s = st.system
+        head = f"  {st.kind + (' ' + st.matrix if st.matrix else ''):<17} {s.name:<22} " \
+               f"d={s.d} N={s.n} alpha={s.alpha:g}  key {st.key}"
+        lines.append(head)
+        if st.kind == "spectrum":
+            for state in st.states:
+                p = st.params[state]
+                what = ("all modes" if p["all"] else
+                        f"window {p['window']}" if p["window"] else f"lowest k={p['k']}")
+                extra = ", per-mode sums" if p["per_mode"] else ""
+                extra += ", eigenvectors stored" if p["vectors"] else ""
+                extra += ", D0 from KPM" if p.get("kpm_plateau") and not p["all"] else ""
+                lines.append(f"      {state:<12} {what}{extra}: {p['solver']}")
+        else:
+            lines.append(f"      states {', '.join(st.states)}; {st.solvers()}")
+        lines.append(f"      estimate: {st.memory_mb:.0f} MB per rank, {st.seconds:.0f} s of "
+                     f"one core")
+        total += st.seconds
+    lines.append(f"total estimate: {total:.0f} s of one core "
+                 f"({total / 60:.1f} min; divide by the ranks for members spread over them)")
+    return "\n".join(lines)

@@ -1,0 +1,118 @@
+"""The per-state work of a scene's analysis stages: one record (a dict of arrays and scalars) per
+packing state, computed by the physics modules."""
+
+import numpy as np
+
+from parjam import kpm, moduli, network, observables, spectrum
+from parjam import softmodes as sm
+from parjam.errors import ParjamError
+
+
+def network_record(pack):
+    """z, dz, p and the rest of the contact-network summary (parjam.network)."""
+    rec = dict(network.analyze(pack).summary())
+    rec["phi_c"] = float(pack.meta.get("phi_c", np.nan))
+    # dz measured from the isostatic count, 2 (Nc - Nc_iso) / N': z - 2d without its finite-size
+    # offset -2d/N' (z = 2d - 2d/N' + 2/N' at isostaticity in a periodic box)
+    rec["dz_iso"] = 2.0 * rec["excess"] / rec["N_active"] if rec["N_active"] else np.nan
+    return rec
+
+
+def dense_eigenvalues(comm, system, kind):
+    """All eigenvalues of one matrix without eigenvectors (LAPACK eigvalsh of the deflated dense
+    matrix, parjam.spectrum's dense reference without its vectors): rank 0 computes, all get."""
+    mpi = comm.tompi4py()
+    res = None
+    if mpi.Get_rank() == 0:
+        H = spectrum.dense_matrix(system, kind)
+        norm = float(np.abs(H).sum(axis=1).max())
+        lam, _ = spectrum.dense_eigh(spectrum.deflated_dense(H, system.n, system.d, norm),
+                                     k=system.n_modes, vectors=False)
+        res = (lam, norm)
+    return mpi.bcast(res, root=0)
+
+
+def spectrum_record(comm, pack, kind, req, tol):
+    """The spectrum a state needs (req from parjam.study.plan.spectrum_needs, with its solver), with
+    D0 and omega* (parjam.observables) and the per-mode sums when they were computed."""
+    system = spectrum.active_system(pack)
+    sol = req["solver"]
+    rec = {"solver": sol, "n_modes_total": system.n_modes, "n_active": system.n}
+    if sol == "dense-eigvalsh":
+        lam, norm = dense_eigenvalues(comm, system, kind)
+        rec.update(eigenvalue=lam, error=np.full(len(lam), np.nan), norm=norm,
+                   n_negative=int(np.sum(lam < -spectrum.ZERO_TOL * norm)), complete=True)
+    else:
+        specs = []
+        if sol == "dense-eigh":
+            specs.append(spectrum.compute(comm, system, kind, k=system.n_modes, method="dense",
+                                          tol=tol, vectors=req["vectors"]))
+        if sol in ("slice", "slice+sinvert"):
+            specs.append(spectrum.compute(comm, system, kind, window=req["window"],
+                                          method="slice", tol=tol, vectors=req["vectors"]))
+        if sol in ("sinvert", "slice+sinvert"):
+            specs.append(spectrum.compute(comm, system, kind, k=min(req["k"], system.n_modes),
+                                          method="sinvert", tol=tol, vectors=req["vectors"]))
+        lam = np.concatenate([s.eigenvalue for s in specs])
+        lam, first = np.unique(lam, return_index=True)
+
+        def cat(name):
+            return np.concatenate([getattr(s, name) for s in specs])[first]
+
+        rec.update(eigenvalue=lam, error=cat("error"), eps_perp=cat("eps_perp"),
+                   eps_par=cat("eps_par"), participation_ratio=cat("participation_ratio"),
+                   norm=specs[0].norm, n_negative=max(s.n_negative for s in specs),
+                   complete=all(s.complete for s in specs))
+        if req["vectors"] and comm.getRank() == 0:
+            rec["eigenvector"] = np.concatenate([s.vectors for s in specs])[first]
+        if req["window"] is not None and sol == "dense-eigh":  # the dense path computed all
+            rec["window"] = np.array(req["window"], dtype=float)
+    omega = observables.frequency(rec["eigenvalue"])
+    rec["frequency"] = omega
+    pos = omega[omega > 0]
+    if req.get("kpm_plateau") and not sol.startswith("dense"):  # a partial spectrum
+        d0, wstar, window = kpm_plateau_summary(comm, system, kind, pos)
+        rec["plateau_source"] = "kpm"
+    else:
+        try:
+            d0, wstar, window = observables.dos_summary(pos, system.n_modes)
+        except ParjamError:
+            d0, wstar, window = np.nan, np.nan, (np.nan, np.nan)
+    rec.update(D0=d0, omega_star=wstar, plateau_window=np.array(window, dtype=float),
+               omega_min=float(pos.min()) if len(pos) else np.nan,
+               pressure=system.pressure, complete=bool(rec["complete"]))
+    return rec
+
+
+KPM_PLATEAU = {"n_moments": 512, "n_probes": 16, "seed": 0}
+
+
+def kpm_plateau_summary(comm, system, kind, omega):
+    """(D0, omega*, plateau window) of a partial spectrum (the lowest modes or a window): the
+    plateau D0 from KPM moments of the whole matrix (parjam.kpm, the 30-60 % frequency
+    quantiles), omega* from the computed modes with it (parjam.observables.omega_star: N(omega)
+    is exact up to the highest computed mode; NaN if the modes do not reach 2 omega*).  The
+    partial spectrum's own upper half would bias D0, and omega* with it, low: by 5-20 % at
+    dphi = 1e-5 .. 1e-3 (3D, N = 1024, docs/reproduction.md)."""
+    res = kpm.compute(comm, system, kind, **KPM_PLATEAU)
+    d0, _, window = kpm.dos_summary(res)
+    return d0, observables.omega_star(omega, system.n_modes, d0), window
+
+
+def moduli_record(comm, pack):
+    mod = moduli.compute(pack, comm)
+    rec = {k: v for k, v in mod.summary().items() if v is not None and np.isscalar(v)}
+    rec["stiffness"] = mod.stiffness
+    return rec
+
+
+def softmodes_record(comm, pack, opts):
+    planes = [sm.parse_cut(c, pack.d) for c in opts["cuts"]]
+    if opts["subdivide"] is not None:
+        planes += sm.subdivision_planes(opts["subdivide"], pack.d)
+    cs = sm.prepare(pack, list(dict.fromkeys(planes)), opts["allow_hyperstatic"])
+    res = sm.analyze(comm, cs, opts["e0"], opts["bins"])
+    rec = {k: (np.nan if v is None else v) for k, v in res.summary().items()}
+    rec.update(overlap=res.overlap, extension=res.e, trial_energy=res.trial_energy,
+               extended_fraction=res.fractions, L=cs.L, n_planes=len(cs.planes))
+    return rec

@@ -1,0 +1,237 @@
+"""The runner of a scene: its stages member by member over groups of ranks (parjam.ranks), each
+member's result stored atomically as it finishes; re-running skips what is done.
+
+Layout of the output directory:
+
+    stages/<stage name>/member0000_<state>.h5   packings (pack stages, the ``parjam pack`` files)
+    stages/<stage name>/member0000.h5           one file per member of every analysis stage
+    summary-<system>-<key>.h5                    ensemble tables (parjam.study.summary)
+    stage.log                                    one line per member computed (never per skip)
+    figures/*.png                                with [observables.pictures]
+"""
+
+import collections
+import os
+import sys
+import time
+
+import h5py
+import numpy as np
+
+from parjam import ensemble, env, io
+from parjam.errors import ParjamError, UnjammedError
+from parjam.fluctuations import contact_fluctuations
+from parjam.plot.spectra import dos_pictures
+from parjam.ranks import member_groups
+from parjam.study.records import moduli_record, network_record, softmodes_record, spectrum_record
+from parjam.study.summary import summary_table, write_summary
+
+EXIT_INTERRUPTED = 5
+
+
+# --------------------------------------------------------------------------- member files
+
+def write_part(path, data, attrs=None):
+    """{state: {name: array or scalar}} -> /<state>/<name>, atomically."""
+    with io.atomic_h5(path) as f:
+        for key, val in (attrs or {}).items():
+            f.attrs[key] = val
+        for state, values in data.items():
+            g = f.create_group(state)
+            for name, val in values.items():
+                if isinstance(val, str):
+                    g.attrs[name] = val
+                else:
+                    g.create_dataset(name, data=np.asarray(val))
+
+
+def read_part(path):
+    """A member's file of an analysis stage as {state: {name: value}} (write_part's inverse)."""
+    with h5py.File(path, "r") as f:
+        return {state: {**{k: v[()] for k, v in f[state].items()}, **dict(f[state].attrs)}
+                for state in f}
+
+
+# --------------------------------------------------------------------------- the runner
+
+class Runner:
+    """A scene's stages (parjam.study.plan) run into ``out``.  ``counts`` tells what this
+    process computed: members per stage kind and summaries written (nothing on a re-run)."""
+
+    def __init__(self, scene, stages, out, world, progress, stop_after=None):
+        self.scene, self.stages, self.out = scene, stages, out
+        self.world, self.mpi = world, world.tompi4py()
+        self.progress = progress
+        #: stop (as if interrupted) after this many members computed in this process
+        self.stop_after = stop_after
+        self.computed = 0
+        self.summaries = {}
+        self.pack_dirs = {}
+        self.counts = collections.Counter()
+
+    # paths -------------------------------------------------------------------
+    def stage_dir(self, st):
+        return os.path.join(self.out, "stages", st.name)
+
+    def part_path(self, st, m):
+        return os.path.join(self.stage_dir(st), f"member{m:04d}.h5")
+
+    def pack_path(self, system, m, label):
+        return os.path.join(self.pack_dirs[system.name], f"member{m:04d}_{label}.h5")
+
+    def summary_path(self, st):
+        return os.path.join(self.out, f"summary-{st.system.name}-{st.key}.h5")
+
+    def failed_path(self, system, m):
+        return os.path.join(self.pack_dirs[system.name], f"member{m:04d}.failed")
+
+    def failed(self, system, m):
+        """The member's packing could not be made (it did not jam): left out of everything."""
+        return os.path.isfile(self.failed_path(system, m))
+
+    def member_done(self, st, m):
+        if self.failed(st.system, m):
+            return True
+        if st.kind == "pack":
+            d = self.stage_dir(st)
+            return all(os.path.isfile(os.path.join(d, f"member{m:04d}_{lab}.h5"))
+                       for lab in st.states)
+        return os.path.isfile(self.part_path(st, m))
+
+    def log(self, st, m):
+        with open(os.path.join(self.out, "stage.log"), "a") as fh:
+            fh.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} computed {st.name} member {m}\n")
+
+    # the loop ----------------------------------------------------------------
+    def run(self):
+        PETSc = env.petsc()
+        if self.mpi.Get_rank() == 0:
+            os.makedirs(self.out, exist_ok=True)
+        self.mpi.Barrier()
+        comm, mine = member_groups(self.world, self.scene.members)
+        self.comm = comm
+        stage = PETSc.Log.Stage("parjam run")
+        stage.push()
+        stopped = False
+        try:
+            for st in self.stages:
+                if st.kind == "pack":
+                    self.pack_dirs[st.system.name] = self.stage_dir(st)
+                if st.kind == "summary":
+                    # a member's stages all run in the same group, so groups only wait for each
+                    # other here, where the summary reads every member
+                    if self.mpi.allreduce(int(stopped)) > 0:
+                        self.progress("interrupted: re-run the same command to resume")
+                        return EXIT_INTERRUPTED
+                    self.summarise(st)
+                elif not stopped:
+                    stopped = self.run_stage(st, comm, mine)
+        finally:
+            stage.pop()
+        if "pictures" in self.scene.observables and self.mpi.Get_rank() == 0:
+            self.pictures()
+        self.mpi.Barrier()
+        return 0
+
+    def run_stage(self, st, comm, mine):
+        """This group's unfinished members of one stage; True if stopped early."""
+        gm = comm.tompi4py()
+        todo = gm.bcast([m for m in mine if not self.member_done(st, m)] if gm.Get_rank() == 0
+                        else None, root=0)
+        label = f"{st.kind}{' ' + st.matrix if st.matrix else ''} {st.system.name}"
+        if len(todo) < len(mine):
+            self.progress(f"{label}: {len(mine) - len(todo)} member(s) of this rank's group "
+                          f"already done")
+        if gm.Get_rank() == 0:
+            os.makedirs(self.stage_dir(st), exist_ok=True)
+        gm.Barrier()
+        for m in todo:
+            if self.stop_after is not None and self.computed >= self.stop_after:
+                return True
+            t0 = time.time()
+            self.compute_member(st, m, comm)
+            self.computed += 1
+            self.counts[st.kind] += 1
+            if gm.Get_rank() == 0:
+                self.log(st, m)
+            self.progress(f"{label}: member {m + 1}/{self.scene.members} in "
+                          f"{time.time() - t0:.1f} s")
+        return False
+
+    def compute_member(self, st, m, comm):
+        if st.kind == "pack":
+            protocol = self.scene.packing_protocol(st.system, self.stage_dir(st))
+            sub = self.progress.sub(f"pack {st.system.name} member {m + 1}: ")
+            sub.enabled = False  # the bisection's lines would drown the stage progress
+            try:
+                ensemble.pack_member(protocol, m, comm, sub)
+            except UnjammedError as exc:  # rare: the member is left out, the ensemble goes on
+                if comm.getRank() == 0:
+                    with open(self.failed_path(st.system, m), "w") as fh:
+                        fh.write(f"{exc}\n")
+                    print(f"parjam: warning: {st.system.name} member {m}: {exc}; left out",
+                          file=sys.stderr, flush=True)
+            return
+        data = {}
+        for label in st.states:
+            pack = io.read_packing(self.pack_path(st.system, m, label))
+            try:
+                data[label] = self.state_record(st, comm, pack, label)
+            except ParjamError as exc:
+                # e.g. a ladder state left with fewer contacts than isostatic (floppy modes):
+                # raised by this member's group only, so record it and go on (raising it would
+                # leave the other groups waiting for this one)
+                data[label] = {"failed": str(exc)}
+                if comm.getRank() == 0:
+                    print(f"parjam: warning: {st.kind} {st.system.name} member {m} {label}: "
+                          f"{exc}; recorded as missing", file=sys.stderr, flush=True)
+        if comm.getRank() == 0:
+            write_part(self.part_path(st, m), data,
+                       {"stage": st.name, "member": m, "kind": st.kind})
+
+    def state_record(self, st, comm, pack, label):
+        if st.kind == "network":
+            return network_record(pack)
+        if st.kind == "spectrum":
+            return spectrum_record(comm, pack, st.matrix, st.params[label],
+                                   self.scene.solver["tol"])
+        if st.kind == "moduli":
+            return moduli_record(comm, pack)
+        if st.kind == "softmodes":
+            return softmodes_record(comm, pack, st.params)
+        if st.kind == "fluctuations":
+            return contact_fluctuations(pack, st.params["max_divisions"])
+        raise ValueError(f"unknown stage kind {st.kind}")
+
+    # the summary -------------------------------------------------------------
+    def summarise(self, st):
+        """Ensemble tables of one system (world rank 0), skipped when already written."""
+        path = self.summary_path(st)
+        self.summaries[st.system.name] = path
+        if self.mpi.Get_rank() == 0 and not os.path.isfile(path):
+            self.counts["summary"] += 1
+            by_kind = {}
+            for dep in self.stages:
+                if dep.key in st.deps and dep.kind != "pack":
+                    tag = dep.kind + (f"/{dep.matrix}" if dep.matrix else "")
+                    by_kind[tag] = [read_part(self.part_path(dep, m))
+                                    for m in range(self.scene.members)
+                                    if not self.failed(st.system, m)]
+            failed = [m for m in range(self.scene.members) if self.failed(st.system, m)]
+            write_summary(path, st, by_kind, self.scene, failed)
+            with open(os.path.join(self.out, "stage.log"), "a") as fh:
+                fh.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} computed {st.name}\n")
+        self.mpi.Barrier()
+
+    def report(self):
+        lines = [f"scene {self.scene.name}: results in {self.out}"]
+        for name, path in self.summaries.items():
+            lines.append(summary_table(path))
+        return "\n".join(lines)
+
+    def pictures(self):
+        fig_dir = os.path.join(self.out, "figures")
+        os.makedirs(fig_dir, exist_ok=True)
+        dpi = self.scene.observables["pictures"]["dpi"]
+        for name, path in self.summaries.items():
+            dos_pictures(path, os.path.join(fig_dir, name), dpi)
