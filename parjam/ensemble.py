@@ -173,7 +173,7 @@ def rows_from_files(out, member, files):
     for name in sorted(files):
         path = os.path.join(out, name)
         with h5py.File(path, "r") as f:
-            row = {key: f["observables"][key][()] for key in SUMMARY_KEYS}
+            row = {key: io.observable(f, key) for key in SUMMARY_KEYS}
             par = f["parameters"].attrs
             state = par["state"]
             row.update(member=member, file=path, phi_c=float(par.get("phi_c", np.nan)),
