@@ -123,10 +123,7 @@ def network_record(pack):
 
     COUNTERS["network"] += 1
     rec = dict(analyze(pack).summary())
-    rec["phi_c"] = float(pack.meta.get("phi_c", np.nan))
-    # dz measured from the isostatic count, 2 (Nc - Nc_iso) / N': z - 2d without its finite-size
-    # offset -2d/N' (z = 2d - 2d/N' + 2/N' at isostaticity in a periodic box)
-    rec["dz_iso"] = 2.0 * rec["excess"] / rec["N_active"] if rec["N_active"] else np.nan
+    rec["phi_c"] = float(pack.meta.get("phi_c", np.nan))  # dz_iso = z - z_iso: parjam.network
     return rec
 
 
@@ -588,8 +585,7 @@ def read_summary(path):
 
 
 def summary_table(path):
-    """One line per state: ensemble means of dz (from the isostatic count), p and the spectra's
-    omega*."""
+    """One line per state: ensemble means of dz_iso = z - z_iso, p and the spectra's omega*."""
     s = read_summary(path)
     lines = [f"{s['attrs']['system']} ({s['attrs']['members']} members): {os.path.basename(path)}"]
     for label in [x.decode() for x in s["attrs"]["states"]]:
@@ -597,7 +593,7 @@ def summary_table(path):
             continue
         parts = [f"  {label:>12}"]
         net = s[label].get("network", {})
-        for q, name in (("dz_iso", "dz"), ("pressure", "p")):
+        for q, name in (("dz_iso", "dz_iso"), ("pressure", "p")):
             if q in net:
                 parts.append(f"{name} {np.nanmean(net[q]):.4g}")
         for kind, val in sorted(s[label].get("spectrum", {}).items()):

@@ -123,7 +123,7 @@ def lengths_figure(results, path):
     x = np.geomspace(0.1, 3, 10)
     ax.plot(x, 3 / x, "k-", lw=0.7, label="slope -1")
     ax.plot(x, 0.8 / np.sqrt(x), "k--", lw=0.7, label="slope -1/2")
-    ax.set(xscale="log", yscale="log", xlabel=r"$\delta z$", ylabel="length (diameters)")
+    ax.set(xscale="log", yscale="log", xlabel=r"dz $= z - 2d$", ylabel="length (diameters)")
     handles, labels = ax.get_legend_handles_labels()
     unique = dict(zip(labels, handles))  # one entry per quantity and dimension
     ax.legend(unique.values(), unique.keys(), fontsize=6, ncol=2)
