@@ -24,8 +24,13 @@ def member_states(args, member, comm, progress, checkpoint=None):
     """Every requested state of one member, in the order they are computed."""
     rng = member_rng(args.seed, member)
     start_phi = args.phi if args.phi is not None else args.phi_start
-    pack = random_packing(args.dim, args.n, start_phi, args.alpha, args.dispersity, args.ratio,
-                          rng)
+    if getattr(args, "start", None):  # pack --from FILE
+        from parjam.importer import from_file
+
+        pack = from_file(args.start, args.alpha)
+    else:
+        pack = random_packing(args.dim, args.n, start_phi, args.alpha, args.dispersity,
+                              args.ratio, rng)
     jammer = Jammer(comm, pack, settings_from(args), progress, checkpoint)
     try:
         if args.phi is not None:

@@ -230,7 +230,7 @@ def read_packing(path):
             params = dict(f["parameters"].attrs) if "parameters" in f else {}
     except (OSError, RuntimeError, KeyError) as exc:  # truncated or corrupted inside
         raise ParjamError(f"{path}: unreadable HDF5 file ({exc})") from None
-    pack = _validated(path, pos, diam, edges, params)
+    pack = validated_packing(path, pos, diam, edges, params)
     if species is not None:
         if species.shape != (pack.n,) or not np.all(species == np.round(species)):
             raise ParjamError(f"{path}: species must be {pack.n} integers")
@@ -251,7 +251,9 @@ def _box_edges(f, path):
     return np.atleast_1d(_dataset(f, "particles/all/box/edges", path, (0, 1), 3))
 
 
-def _validated(path, pos, diam, edges, params):
+def validated_packing(path, pos, diam, edges, params):
+    """A Packing from raw arrays (positions (N, d) or (T, N, d), diameters, box edges, the
+    /parameters attributes), each problem a one-line ParjamError naming ``path``."""
     if pos.ndim == 3:
         if pos.shape[0] == 0:
             raise ParjamError(f"{path}: the position time series holds no frame")
