@@ -206,7 +206,7 @@ def _run(args):
     validate(args)
     from parjam import env, manifest
     from parjam.ensemble import pack_member, print_table, rows_from_files
-    from parjam.progress import Progress
+    from parjam.progress import Progress, Relay
 
     PETSc = env.petsc()
     world = PETSc.COMM_WORLD
@@ -223,7 +223,8 @@ def _run(args):
         raise ParjamError(outcome)
     done, notes = outcome
     done = {m: files for m, files in done.items() if m < args.members}
-    progress = Progress(world, args.quiet)
+    relay = Relay(mpi)  # every group's progress lines reach world rank 0
+    progress = Progress(world, args.quiet, relay=relay)
     for note in notes:
         progress(note)
     if done:
@@ -235,9 +236,10 @@ def _run(args):
     stage = PETSc.Log.Stage("parjam pack")
     stage.push()
     for m in mine:
-        rows += pack_member(args, m, comm, progress.sub(f"member {m + 1}/{args.members}: "),
-                            params)
+        rows += pack_member(args, m, comm,
+                            progress.group(comm, f"member {m} of {args.members}: "), params)
     stage.pop()
+    relay.close()
     all_rows = mpi.gather(rows, root=0)
     if world.getRank() == 0:
         from parjam import checkpoint

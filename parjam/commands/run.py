@@ -389,7 +389,7 @@ class Runner:
 
             COUNTERS["pack"] += 1
             args = pack_args(self.scene, st.system, self.stage_dir(st))
-            sub = self.progress.sub(f"pack {st.system.name} member {m + 1}: ")
+            sub = self.progress.sub(f"pack {st.system.name} member {m}: ")
             sub.enabled = False  # the bisection's lines would drown the stage progress
             try:
                 pack_member(args, m, comm, sub)
