@@ -620,7 +620,7 @@ def dos_pictures(path, stem, dpi):
                             lw=1, label=lab)
         ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$ per mode",
                title=f"{s['attrs']['system']}: {kind}")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=8)
         fig.tight_layout()
         fig.savefig(f"{stem}-dos-{kind}.png", dpi=dpi)
         plt.close(fig)

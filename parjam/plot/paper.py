@@ -17,13 +17,12 @@ from typing import Callable
 import numpy as np
 
 from parjam.errors import ParjamError
-from parjam.plot import atomic_png, pyplot
+from parjam.plot import DPI, LEGEND_FONTSIZE, atomic_png, pyplot
 from parjam.plot.fits import fit_eq33, fit_power, law, log_slope
 
 #: figure group -> the bundled scenes (subdirectories of a results directory) that feed it
 SCENES = {"paper": ("paper-3d", "paper-2d", "paper-3d-10x"), "hertz": ("hertz-3d",),
           "softmodes": ("softmodes-3d",)}
-DPI = 80
 
 
 # --------------------------------------------------------------------------- summaries
@@ -138,7 +137,7 @@ def fig1(plt, systems, fits):
                 ax.plot(dos["omega"], dos["density"], "-", lw=1.2,
                         label=rf"$\delta\phi$ = {value(lab):.0e}")
         ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}, full matrix")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -171,7 +170,7 @@ def compare(plt, systems, fits):
                 ax.semilogy(c[d > 0], d[d > 0], ls, color=f"C{k}", lw=1.1,
                             label=f"{matrix} {value(lab):.0e}")
         ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}: full (-) vs relaxed (--)")
-        ax.legend(fontsize=6, ncol=2)
+        ax.legend(fontsize=LEGEND_FONTSIZE, ncol=2)
     return fig
 
 
@@ -208,7 +207,7 @@ def sans(plt, systems, fits):
                   label=f"{name}: slope {law(f)}")
     ax.set(xlabel=r"dz_iso $= z - z_{iso}$", ylabel=r"$\omega^*$ (relaxed)",
            title=r"$\omega^* \sim$ dz_iso")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -236,7 +235,7 @@ def trans(plt, systems, fits):
         x = np.geomspace(w.min(), w.max(), 20)
         ax.loglog(x, np.exp(a) * x**2, "k--", lw=0.8, label=r"$\propto\omega^2$")
         ax.set(xlabel=r"$\omega$", ylabel="sum per mode", title=rf"{name}, $\delta\phi=10^{{-8}}$")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -281,7 +280,7 @@ def eq33(plt, systems, fits):
     ax.loglog(lim, lim, "k--", lw=0.8)
     ax.set(xlabel=r"$A_1$ dz_iso$^2 - A_2 p$", ylabel=r"$\omega_{AM}^2$",
            title="Eq. (33), full system")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -314,7 +313,7 @@ def diag(plt, systems, fits):
     ax.set(xlabel="p", ylabel=r"dz_iso $= z - z_{iso}$",
            title=r"dz_iso $= C_0\, p^{1/2}$ (Eq. 22)")
     ax.set_ylim(bottom=max(ax.get_ylim()[0], 1e-3))
-    ax.legend(fontsize=6)
+    ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -350,7 +349,7 @@ def fluct(plt, systems, fits):
         ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d / 2), "k:", label=f"l^{d / 2:g}")
         ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d - 1), "k-.", label=f"l^{d - 1}")
         ax.set(xlabel="l", ylabel="std in a sub-box", title=name)
-        ax.legend(fontsize=6)
+        ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -375,7 +374,7 @@ def hertz(plt, systems, fits):
             ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
                       label=f"N = {s['attrs']['n']}: {law(f)} (theory {theory:.3g})")
             ax.set(xlabel="p", ylabel=key, title=f"Hertz, alpha = 5/2: {key}")
-            ax.legend(fontsize=7)
+            ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -402,7 +401,7 @@ def softmodes(plt, systems, fits):
         emax.append(np.nanmean(g["trial_energy_max"]))
         wl2.append(np.mean(g["omega_L2"]))
     axes[0].set(xlabel="x / L", ylabel="f(x)", title="overlap function, cut cube")
-    axes[0].legend(fontsize=7)
+    axes[0].legend(fontsize=LEGEND_FONTSIZE)
     Ls = np.array(Ls)
     axes[1].loglog(Ls, emean, "o-", label=r"mean $\langle\delta R^*|M|\delta R^*\rangle$ (e > 0.1)")
     axes[1].loglog(Ls, emax, "s-", label="max trial energy")
@@ -414,7 +413,7 @@ def softmodes(plt, systems, fits):
         Y = np.array([s["phi_c"]["softmodes"]["omega_t2"][:m] for s in ordered]).T
         fits["softmodes/trial_energy_vs_L"] = {**fit_power(X, Y), "theory": -2.0}
     axes[1].set(xlabel="L", ylabel="energy", title="trial modes vs $\\omega_L^2$")
-    axes[1].legend(fontsize=7)
+    axes[1].legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 

@@ -3,7 +3,7 @@ the transverse/longitudinal ratio eps_perp/eps_par per mode (Fig. "trans") and p
 
 import numpy as np
 
-from parjam.plot import pyplot
+from parjam.plot import DPI, pyplot
 
 
 def _label(spec):
@@ -31,7 +31,7 @@ def spectra_figure(spectra, path):
     for a in ax:
         a.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
 
@@ -45,5 +45,5 @@ def ensemble_dos_figure(omega, density, error, path, label="ensemble", omega_sta
     ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$ per mode")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
