@@ -89,12 +89,23 @@ def write_dos(f, dos):
             g.attrs[key] = val
 
 
-def dos_record(omega, n_modes, bins=40, log=False, omega_min=None, plateau=None):
-    """D(omega) of one spectrum on bins up to its highest computed frequency, with D0 and
-    omega* (definitions in parjam.observables)."""
+MAX_AUTO_BINS = 40
+
+
+def auto_bins(n_frequencies):
+    """Bins for ``n`` computed frequencies when none are asked for: about sqrt(n), between 3 and
+    40, so that a few lowest modes (``--k 20``) give a histogram rather than a comb of bins
+    holding 0 or 1 mode."""
+    return int(min(MAX_AUTO_BINS, max(3, round(np.sqrt(n_frequencies)))))
+
+
+def dos_record(omega, n_modes, bins=None, log=False, omega_min=None, plateau=None):
+    """D(omega) of one spectrum on bins up to its highest computed frequency (``bins`` None:
+    :func:`auto_bins`), with D0 and omega* (definitions in parjam.observables)."""
     pos = np.asarray(omega)[np.asarray(omega) > 0]
     if len(pos) == 0:
         raise ParjamError("no positive frequency: cannot build D(omega)")
+    bins = auto_bins(len(pos)) if bins is None else bins
     edges = observables.dos_edges(float(pos.max()), bins, log, omega_min)
     centres, density = observables.density_of_states(pos, n_modes, edges)
     d0, wstar, window = observables.dos_summary(pos, n_modes, plateau)
