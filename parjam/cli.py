@@ -48,6 +48,31 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"parjam: error: {message} (see {self.prog} --help)\n")
 
 
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Every option's default in --help, unless its help already states it (as argparse's
+    ArgumentDefaultsHelpFormatter, without repeating "(default 3)" or "(1.4)")."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if (default is None or default is False or default is argparse.SUPPRESS
+                or action.option_strings == [] or "%(default)" in text):
+            return text
+        shown = " ".join(str(v) for v in default) if isinstance(default, (list, tuple)) \
+            else str(default)
+        if "default" in text or f"({shown})" in text:
+            return text
+        return f"{text} (default: {shown})"
+
+
+class CommandParser(OneLineParser):
+    """The parsers of the commands: one-line errors, defaults shown in --help."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", DefaultsHelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
 def build_parser():
     import parjam.commands as pkg
 
@@ -58,7 +83,7 @@ def build_parser():
         "(-log_view, -eps_*, -st_*, -ksp_*) may follow.",
     )
     parser.add_argument("--version", action="version", version=f"parjam {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
     sub.required = True
     for mod in sorted(m.name for m in pkgutil.iter_modules(pkg.__path__)):
         importlib.import_module(f"parjam.commands.{mod}").add_parser(sub)
