@@ -173,7 +173,7 @@ def test_bad_foreign_files_one_line_errors(shared_dir, capsys):
 def test_pack_from_an_imported_lammps_configuration(shared_dir):
     """A random (unjammed) LAMMPS configuration imported, then minimised, brought to phi_c and
     compressed by dphi = 1e-3 with `pack --from`."""
-    pack = _pack(2, 64, 0.80, seed=11)
+    pack = _pack(2, 24, 0.80, seed=11)
     data = os.path.join(shared_dir, "start.data")
     imported, out = os.path.join(shared_dir, "start.h5"), os.path.join(shared_dir, "packs")
     _on_rank0(_lammps_data, data, pack.pos, pack.diam, pack.meta["species"] + 1, pack.L,
