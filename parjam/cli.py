@@ -79,8 +79,10 @@ def build_parser():
     parser = OneLineParser(
         prog="parjam",
         description="Parallel vibrational analysis of jammed soft-sphere packings "
-        "(Wyart, Silbert, Nagel & Witten, PRE 72, 051306). Any PETSc/SLEPc option "
-        "(-log_view, -eps_*, -st_*, -ksp_*) may follow.",
+        "(Wyart, Silbert, Nagel & Witten, PRE 72, 051306). PETSc/SLEPc options may follow, "
+        "with the prefix of the solver they are for (-modes_eps_*, -modes_st_*, -newton_ksp_*, "
+        "-moduli_ksp_*, -soft_*; global ones such as -log_view without); an option that no "
+        "solver read is reported at the end with the nearest valid name.",
     )
     parser.add_argument("--version", action="version", version=f"parjam {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
