@@ -124,6 +124,9 @@ def warnings_for(petsc_args, command=None):
     for name in user_option_names(petsc_args):
         if name not in left or name in GLOBAL:
             continue
+        if name in valid_names():  # a valid name whose solver did not run this time
+            lines.append(f"-{name} was not used: no solver that reads it ran")
+            continue
         hint = suggestion(name, command)
         lines.append(f"-{name} was not used" + (f"; did you mean -{hint}?" if hint else
                                                  " (no solver of this command reads it)"))

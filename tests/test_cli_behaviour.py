@@ -36,12 +36,14 @@ def test_nearest_valid_option():
 @pytest.mark.serial
 def test_unused_and_misspelled_options_warn(tmp_path):
     r = _run(["modes", REF, "--k", "4", "--method", "sinvert", "--out", "s.h5", "-q",
-              "-eps_view", "-modes_eps_tyep", "krylovschur", "-modes_eps_ncv", "20"], tmp_path)
+              "-eps_view", "-modes_eps_tyep", "krylovschur", "-modes_eps_ncv", "20",
+              "-newton_ksp_type", "cg"], tmp_path)
     assert r.returncode == 0, r.stderr
     warnings = [ln for ln in r.stderr.splitlines() if ln.startswith("parjam: warning: -")]
     assert warnings == [
         "parjam: warning: -eps_view was not used; did you mean -modes_eps_view?",
-        "parjam: warning: -modes_eps_tyep was not used; did you mean -modes_eps_type?"]
+        "parjam: warning: -modes_eps_tyep was not used; did you mean -modes_eps_type?",
+        "parjam: warning: -newton_ksp_type was not used: no solver that reads it ran"]
     assert "ncv" not in r.stderr  # -modes_eps_ncv reached the solver: no warning
 
 
