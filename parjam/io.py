@@ -174,7 +174,9 @@ def _write_contacts(f, pack, net):
     g.create_dataset("force", data=fmag).attrs["unit"] = fixed_string(FORCE)
     g.create_dataset("stiffness", data=potential.d2V(c.r, c.sigma, pack.alpha, pack.eps)
                      ).attrs["unit"] = fixed_string("epsilon sigma-2")
-    g["contacts"].attrs["particles_group"] = fixed_string("/particles/all")
+    # H5MD connectivity module: an object reference to the particles group
+    g["contacts"].attrs.create("particles_group", f["particles/all"].ref,
+                               dtype=h5py.ref_dtype)
 
 
 MAX_PARTICLES = 50_000_000  # a file claiming more is refused before anything is read
