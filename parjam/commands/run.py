@@ -123,7 +123,7 @@ def network_record(pack):
 
     COUNTERS["network"] += 1
     rec = dict(analyze(pack).summary())
-    rec["phi_c"] = float(pack.meta.get("phi_c", np.nan))  # dz_iso = z - z_iso: parjam.network
+    rec["phi_c"] = float(pack.meta.get("phi_c", np.nan))
     return rec
 
 
