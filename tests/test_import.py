@@ -170,18 +170,30 @@ def test_bad_foreign_files_one_line_errors(shared_dir, capsys):
         assert not os.path.exists(out)
 
 
-def test_pack_from_an_imported_lammps_configuration(shared_dir):
+@pytest.mark.serial
+def test_pack_from_an_imported_lammps_configuration(tmp_path):
     """A random (unjammed) LAMMPS configuration imported, then minimised, brought to phi_c and
-    compressed by dphi = 1e-3 with `pack --from`."""
+    compressed by dphi = 1e-3 with `pack --from`, as a user runs them (processes of their own:
+    serial pass only; a member shared by 2 ranks is tested in test_packing)."""
+    import subprocess
+    import sys
+
+    from conftest import subprocess_env
+
     pack = _pack(2, 24, 0.80, seed=11)
-    data = os.path.join(shared_dir, "start.data")
-    imported, out = os.path.join(shared_dir, "start.h5"), os.path.join(shared_dir, "packs")
-    _on_rank0(_lammps_data, data, pack.pos, pack.diam, pack.meta["species"] + 1, pack.L,
-              "sphere")
-    assert _import([data, "--out", imported]) == 0
-    assert cli.main(["pack", "--from", imported, "--dphi", "1e-3", "--out", out, "-q",
-                     "--checkpoint-every", "0"]) == 0
-    MPI.Barrier()
+    data, imported = str(tmp_path / "start.data"), str(tmp_path / "start.h5")
+    out = str(tmp_path / "packs")
+    _lammps_data(data, pack.pos, pack.diam, pack.meta["species"] + 1, pack.L, "sphere")
+
+    def parjam(*args):
+        return subprocess.run([sys.executable, "-m", "parjam", *args], env=subprocess_env(),
+                              capture_output=True, text=True, timeout=600)
+
+    r = parjam("import", data, "--out", imported)
+    assert r.returncode == 0, r.stderr
+    r = parjam("pack", "--from", imported, "--dphi", "1e-3", "--out", out, "-q",
+               "--checkpoint-every", "0")
+    assert r.returncode == 0, r.stderr
     phic = io.read_packing(os.path.join(out, "member0000_phi_c.h5"))
     top = io.read_packing(os.path.join(out, "member0000_dphi1.0e-03.h5"))
     phi_c = float(phic.meta["phi_c"])
@@ -192,5 +204,6 @@ def test_pack_from_an_imported_lammps_configuration(shared_dir):
     assert net.max_force <= 1e-12 and net.excess >= 0  # jammed, in force balance
     with h5py.File(os.path.join(out, "member0000_phi_c.h5")) as f:
         assert 1e-16 <= io.observable(f, "energy_per_particle") <= 2e-16
-    # --from takes one configuration
-    assert cli.main(["pack", "--from", imported, "--members", "2", "--out", out]) == 2
+    r = parjam("pack", "--from", imported, "--members", "2", "--out", out)
+    assert r.returncode == 2 and r.stderr.strip() == (
+        "parjam: error: --from starts one configuration: --members must be 1, got 2")
