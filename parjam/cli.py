@@ -7,6 +7,7 @@ more characters) go to PETSc's options database before any PETSc object is creat
 """
 
 import argparse
+import contextlib
 import importlib
 import os
 import pkgutil
@@ -47,17 +48,44 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"parjam: error: {message} (see {self.prog} --help)\n")
 
 
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Every option's default in --help, unless its help already states it (as argparse's
+    ArgumentDefaultsHelpFormatter, without repeating "(default 3)" or "(1.4)")."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if (default is None or default is False or default is argparse.SUPPRESS
+                or action.option_strings == [] or "%(default)" in text):
+            return text
+        shown = " ".join(str(v) for v in default) if isinstance(default, (list, tuple)) \
+            else str(default)
+        if "default" in text or f"({shown})" in text:
+            return text
+        return f"{text} (default: {shown})"
+
+
+class CommandParser(OneLineParser):
+    """The parsers of the commands: one-line errors, defaults shown in --help."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", DefaultsHelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
 def build_parser():
     import parjam.commands as pkg
 
     parser = OneLineParser(
         prog="parjam",
         description="Parallel vibrational analysis of jammed soft-sphere packings "
-        "(Wyart, Silbert, Nagel & Witten, PRE 72, 051306). Any PETSc/SLEPc option "
-        "(-log_view, -eps_*, -st_*, -ksp_*) may follow.",
+        "(Wyart, Silbert, Nagel & Witten, PRE 72, 051306). PETSc/SLEPc options may follow, "
+        "with the prefix of the solver they are for (-modes_eps_*, -modes_st_*, -newton_ksp_*, "
+        "-moduli_ksp_*, -soft_*; global ones such as -log_view without); an option that no "
+        "solver read is reported at the end with the nearest valid name.",
     )
     parser.add_argument("--version", action="version", version=f"parjam {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
     sub.required = True
     for mod in sorted(m.name for m in pkgutil.iter_modules(pkg.__path__)):
         importlib.import_module(f"parjam.commands.{mod}").add_parser(sub)
@@ -74,6 +102,7 @@ def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, petsc_args = split_petsc_args(argv)
     env.init(petsc_args)
+    quiet_closed_stdout()
     rank, size = rank_and_size()
     _outcome_comm()  # collective: made here, while every rank is sure to take part
     parser = build_parser()
@@ -85,15 +114,18 @@ def main(argv=None):
         from parjam import faults
 
         faults.point("command")  # PARJAM_FAULT testing hook (parjam/faults.py)
-        code = args.run(args)
+        code = _run_command(args, petsc_args)
         # a command is collective: return only when every rank is done, so the files that rank 0
         # wrote exist for whatever any rank does next (e.g. a script or test calling main twice);
         # the closing reduction also tells a rank whether a peer failed with a "collective" error
         failed, worst = _closing_outcome(0)
+        _warn_unused_options(petsc_args, args.command, collective=True)
         if failed:
             return worst
         return int(code or 0)
     except ParjamError as exc:
+        if rank == 0:
+            _warn_unused_options(petsc_args, args.command, collective=False)
         if rank == 0 or not exc.collective:
             prefix = f"[rank {rank}] " if size > 1 and not exc.collective else ""
             print(f"parjam: error: {prefix}{exc}", file=sys.stderr, flush=True)
@@ -114,6 +146,82 @@ def main(argv=None):
         if size > 1:
             _abort(1)
         return 1
+
+
+class _ClosedPipeTolerantStream:
+    """stdout that goes quiet when its reader goes away (``parjam analyze ... | head -1``): the
+    first write or flush that meets a closed pipe sends the rest to /dev/null, so the command
+    ends normally on every rank (exit 0) instead of a traceback or a signal dump."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self.closed_pipe = False
+
+    def _quiet(self):
+        self.closed_pipe = True
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        with contextlib.suppress(OSError, ValueError):
+            os.dup2(devnull, self._stream.fileno())
+        os.close(devnull)
+
+    def write(self, text):
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._quiet()
+            return len(text)
+
+    def flush(self):
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._quiet()
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+def quiet_closed_stdout():
+    """SIGPIPE ignored again after PETSc installed its handler (which dumps 'Caught signal
+    number 13' and aborts), and a stdout that tolerates a closed pipe."""
+    import signal
+
+    if hasattr(signal, "SIGPIPE"):
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+    if not isinstance(sys.stdout, _ClosedPipeTolerantStream) and sys.stdout is not None:
+        sys.stdout = _ClosedPipeTolerantStream(sys.stdout)
+
+
+def _run_command(args, petsc_args):
+    """The command; a PETSc error that a bad option value caused becomes a one-line ParjamError
+    (parjam.options.option_error)."""
+    from parjam import options
+
+    PETSc = env.petsc()
+    try:
+        return args.run(args)
+    except PETSc.Error as exc:
+        message = options.option_error(exc, petsc_args)
+        if message is None:
+            raise
+        raise ParjamError(message) from None
+
+
+def _warn_unused_options(petsc_args, command, collective):
+    """One warning line per option given that no solver read (on any rank, when
+    ``collective``), on rank 0 (parjam.options.warnings_for)."""
+    if not petsc_args:
+        return
+    from parjam import options
+
+    lines = options.warnings_for(petsc_args, command)
+    if collective and _outcome_comm().Get_size() > 1:
+        # an option is unused only if no rank read it
+        sets = _outcome_comm().allgather(set(lines))
+        lines = [ln for ln in lines if all(ln in other for other in sets)]
+    if _outcome_comm().Get_rank() == 0:
+        for line in lines:
+            print(f"parjam: warning: {line}", file=sys.stderr, flush=True)
 
 
 _OUTCOME_COMM = None

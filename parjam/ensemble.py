@@ -19,8 +19,13 @@ def member_states(args, member, comm, progress, checkpoint=None):
     """Every requested state of one member, in the order they are computed."""
     rng = member_rng(args.seed, member)
     start_phi = args.phi if args.phi is not None else args.phi_start
-    pack = random_packing(args.dim, args.n, start_phi, args.alpha, args.dispersity, args.ratio,
-                          rng)
+    if getattr(args, "start", None):  # pack --from FILE
+        from parjam.importer import from_file
+
+        pack = from_file(args.start, args.alpha)
+    else:
+        pack = random_packing(args.dim, args.n, start_phi, args.alpha, args.dispersity,
+                              args.ratio, rng)
     jammer = Jammer(comm, pack, settings_from(args), progress, checkpoint)
     try:
         if args.phi is not None:
@@ -169,7 +174,7 @@ def rows_from_files(out, member, files):
     for name in sorted(files):
         path = os.path.join(out, name)
         with h5py.File(path, "r") as f:
-            row = {key: f["observables"][key][()] for key in SUMMARY_KEYS}
+            row = {key: io.observable(f, key) for key in SUMMARY_KEYS}
             par = f["parameters"].attrs
             state = par["state"]
             row.update(member=member, file=path, phi_c=float(par.get("phi_c", np.nan)),

@@ -36,18 +36,40 @@ def atomic_h5(path):
 
 
 def write_h5md_header(f, provenance=None):
-    """The /h5md group: version, author, creator (parjam + version) and a parjam module."""
+    """The /h5md group: version, author, creator (parjam + version) and a parjam module; the
+    strings fixed-length ASCII and the version integers, as the H5MD 1.1 specification asks."""
     h5md = f.create_group("h5md")
     h5md.attrs["version"] = np.array([1, 1], dtype=np.int32)
     author = h5md.create_group("author")
-    author.attrs["name"] = os.environ.get("USER", "parjam user")
+    author.attrs["name"] = fixed_string(os.environ.get("USER", "parjam user"))
     creator = h5md.create_group("creator")
-    creator.attrs["name"] = "parjam"
-    creator.attrs["version"] = __version__
+    creator.attrs["name"] = fixed_string("parjam")
+    creator.attrs["version"] = fixed_string(__version__)
     module = h5md.create_group("modules").create_group("parjam")
-    module.attrs["version"] = __version__
+    module.attrs["version"] = fixed_string(__version__)
     for key, val in (provenance or {}).items():
-        module.attrs[key] = _attr(val)
+        val = _attr(val)
+        module.attrs[key] = fixed_string(val) if isinstance(val, str) else val
+
+
+def fixed_string(text):
+    """A fixed-length string for an HDF5 attribute (h5py writes ``str`` as variable-length);
+    non-ASCII characters become '?' (H5MD asks for the ASCII character set)."""
+    return np.bytes_(str(text).encode("ascii", "replace") or b" ")
+
+
+# Reduced units (H5MD units module: symbols separated by spaces, each with an optional power).
+# Lengths are in units of sigma (the smallest diameter of mono- and bidisperse packings) and
+# energies in units of epsilon (the prefactor of V(r)).
+LENGTH, ENERGY, FORCE = "sigma", "epsilon", "epsilon sigma-1"
+
+
+def pressure_unit(d):
+    return f"epsilon sigma-{d}"
+
+
+OBSERVABLE_UNITS = {"pressure": "pressure", "stress_tensor": "pressure",
+                    "energy_per_particle": ENERGY, "max_force": FORCE}
 
 
 def _attr(val):
@@ -76,36 +98,68 @@ def provenance(comm_size, extra=None):
     return prov
 
 
+def write_particles(f, pack, group="all"):
+    """/particles/GROUP: box, positions (one-frame H5MD time series), diameters and species.
+
+    The box edges are a time series too (H5MD allows a fixed box as a plain dataset, but
+    MDAnalysis's reader reads ``box/edges/value`` of the frame).  Positions and their time carry
+    no ``unit`` attribute: MDAnalysis refuses any unit it cannot convert to its own (even with
+    convert_units=False), and parjam's units are reduced (sigma, epsilon); every other
+    dimensionful quantity names its unit (docs/file-format.md)."""
+    part = f.create_group(f"particles/{group}")
+    box = part.create_group("box")
+    box.attrs["dimension"] = np.int32(pack.d)
+    box.attrs["boundary"] = np.array([b"periodic"] * pack.d, dtype="S8")
+    edges = box.create_group("edges")
+    _time_series(edges, np.full((1, pack.d), pack.L), LENGTH)
+    pos = part.create_group("position")
+    _time_series(pos, pack.pos[None, :, :], None)
+    part.create_dataset("diameter", data=pack.diam).attrs["unit"] = fixed_string(LENGTH)
+    species = pack.meta.get("species")
+    species = np.zeros(pack.n, np.int32) if species is None else np.asarray(species, np.int32)
+    part.create_dataset("species", data=species)
+    return part
+
+
+def _time_series(group, value, unit):
+    """An H5MD time-dependent element with one frame: step (int), time (float), value."""
+    group.create_dataset("step", data=np.array([0], dtype=np.int64))
+    group.create_dataset("time", data=np.array([0.0]))
+    ds = group.create_dataset("value", data=value)
+    if unit:
+        ds.attrs["unit"] = fixed_string(unit)
+
+
 def write_packing(path, pack, net, parameters, prov=None, observables=None):
     """One packing and its contact network (H5MD layout; see docs/file-format.md); extra
-    ``observables`` (name: value) go to /observables beside the network's."""
+    ``observables`` (name: value) go to /observables beside the network's, each an H5MD time
+    series of one frame (read them back with :func:`observable`)."""
     with atomic_h5(path) as f:
         write_h5md_header(f, prov)
-        part = f.create_group("particles/all")
-        box = part.create_group("box")
-        box.attrs["dimension"] = np.int32(pack.d)
-        box.attrs["boundary"] = np.array([b"periodic"] * pack.d, dtype="S8")
-        box.create_dataset("edges", data=np.full(pack.d, pack.L))
-        pos = part.create_group("position")
-        pos.create_dataset("step", data=np.array([0], dtype=np.int64))
-        pos.create_dataset("time", data=np.array([0.0]))
-        pos.create_dataset("value", data=pack.pos[None, :, :])
-        part.create_dataset("diameter", data=pack.diam)
-        part.create_dataset("species", data=pack.meta.get("species", np.zeros(pack.n, np.int32)))
+        part = write_particles(f, pack)
         part.create_dataset("rattler", data=net.rattler.astype(np.int8))
         _write_contacts(f, pack, net)
         obs = f.create_group("observables")
-        for key, val in net.summary().items():
-            obs.create_dataset(key, data=val)
-        obs.create_dataset("stress_tensor", data=net.stress)
-        for key, val in (observables or {}).items():
-            obs.create_dataset(key, data=val)
+        values = dict(net.summary(), stress_tensor=net.stress, **(observables or {}))
+        for key, val in values.items():
+            unit = OBSERVABLE_UNITS.get(key)
+            unit = pressure_unit(pack.d) if unit == "pressure" else unit
+            _time_series(obs.create_group(key), np.asarray(val)[None, ...], unit)
         par = f.create_group("parameters")
         par.attrs["alpha"] = pack.alpha
         par.attrs["epsilon"] = pack.eps
         par.attrs["phi"] = pack.phi
         for key, val in parameters.items():
             par.attrs[key] = _attr(val)
+
+
+def observable(f, name):
+    """The value of /observables/NAME of an open packing file: the last frame of its time series
+    (older parjam files held a plain dataset; both are read)."""
+    obj = f["observables"][name]
+    if isinstance(obj, h5py.Group):
+        return obj["value"][-1]
+    return obj[()]
 
 
 def _write_contacts(f, pack, net):
@@ -117,9 +171,12 @@ def _write_contacts(f, pack, net):
     g.create_dataset("contacts", data=np.stack([c.i, c.j], axis=1).reshape(-1, 2))
     g.create_dataset("overlap", data=potential.overlap(c.r, c.sigma))
     fmag = np.linalg.norm(contact_forces(pack, c), axis=1) if len(c) else np.zeros(0)
-    g.create_dataset("force", data=fmag)
-    g.create_dataset("stiffness", data=potential.d2V(c.r, c.sigma, pack.alpha, pack.eps))
-    g["contacts"].attrs["particles_group"] = "/particles/all"
+    g.create_dataset("force", data=fmag).attrs["unit"] = fixed_string(FORCE)
+    g.create_dataset("stiffness", data=potential.d2V(c.r, c.sigma, pack.alpha, pack.eps)
+                     ).attrs["unit"] = fixed_string("epsilon sigma-2")
+    # H5MD connectivity module: an object reference to the particles group
+    g["contacts"].attrs.create("particles_group", f["particles/all"].ref,
+                               dtype=h5py.ref_dtype)
 
 
 MAX_PARTICLES = 50_000_000  # a file claiming more is refused before anything is read
@@ -168,14 +225,37 @@ def read_packing(path):
         with h5py.File(path, "r") as f:
             pos = _dataset(f, "particles/all/position/value", path, (2, 3), limit)
             diam = _dataset(f, "particles/all/diameter", path, (1,), limit)
-            edges = np.atleast_1d(_dataset(f, "particles/all/box/edges", path, (0, 1), 3))
+            edges = _box_edges(f, path)
+            species = None
+            if isinstance(f.get("particles/all/species"), h5py.Dataset):
+                species = _dataset(f, "particles/all/species", path, (1,), limit)
             params = dict(f["parameters"].attrs) if "parameters" in f else {}
     except (OSError, RuntimeError, KeyError) as exc:  # truncated or corrupted inside
         raise ParjamError(f"{path}: unreadable HDF5 file ({exc})") from None
-    return _validated(path, pos, diam, edges, params)
+    pack = validated_packing(path, pos, diam, edges, params)
+    if species is not None:
+        if species.shape != (pack.n,) or not np.all(species == np.round(species)):
+            raise ParjamError(f"{path}: species must be {pack.n} integers")
+        pack.meta["species"] = species.astype(np.int32)
+    return pack
 
 
-def _validated(path, pos, diam, edges, params):
+def _box_edges(f, path):
+    """Box edges of the last frame: an H5MD time series (``box/edges/value``, parjam's files)
+    or a plain dataset (older parjam files, the reference layout, other H5MD writers)."""
+    if isinstance(f.get("particles/all/box/edges"), h5py.Group):
+        edges = _dataset(f, "particles/all/box/edges/value", path, (1, 2), 3 * 10**6)
+        if edges.ndim == 2:
+            if edges.shape[0] == 0:
+                raise ParjamError(f"{path}: the box time series holds no frame")
+            edges = edges[-1]
+        return edges
+    return np.atleast_1d(_dataset(f, "particles/all/box/edges", path, (0, 1), 3))
+
+
+def validated_packing(path, pos, diam, edges, params):
+    """A Packing from raw arrays (positions (N, d) or (T, N, d), diameters, box edges, the
+    /parameters attributes), each problem a one-line ParjamError naming ``path``."""
     if pos.ndim == 3:
         if pos.shape[0] == 0:
             raise ParjamError(f"{path}: the position time series holds no frame")
@@ -243,22 +323,25 @@ def sha256(path):
 
 
 def write_extxyz(path, pack, net):
-    """Extended XYZ: Lattice, then per particle species, position, radius and rattler flag."""
+    """Extended XYZ: Lattice, then per particle type (the integer species), position, radius and
+    rattler flag.  No ``species`` column: ASE reads that one as chemical symbols; ``type`` is
+    OVITO's particle type and reaches ASE as ``atoms.arrays["type"]`` (docs/file-format.md)."""
     d = pack.d
     lattice = " ".join(
         f"{pack.L if a == b else 0.0:.17g}" for a in range(3) for b in range(3))
     if d == 2:  # a thin third dimension so that 3D viewers accept it
         lattice = lattice.rsplit(" ", 1)[0] + f" {max(pack.diam):.17g}"
-    props = "Properties=species:S:1:pos:R:3:radius:R:1:rattler:I:1"
+    props = "Properties=type:I:1:pos:R:3:radius:R:1:rattler:I:1"
     species = pack.meta.get("species")
+    species = np.zeros(pack.n, np.int64) if species is None else np.asarray(species, np.int64)
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "w") as fh:
         fh.write(f"{pack.n}\n")
         fh.write(f'Lattice="{lattice}" {props} pbc="T T {"T" if d == 3 else "F"}" '
-                 f"phi={pack.phi:.17g} alpha={pack.alpha:g}\n")
+                 f"phi={pack.phi:.17g} alpha={pack.alpha:.17g} epsilon={pack.eps:.17g} "
+                 f"dimension={d}\n")
         for k in range(pack.n):
             xyz = list(pack.pos[k]) + [0.0] * (3 - d)
-            sp = f"S{int(species[k])}" if species is not None else "S0"
-            fh.write(f"{sp} {xyz[0]:.17g} {xyz[1]:.17g} {xyz[2]:.17g} "
+            fh.write(f"{species[k]} {xyz[0]:.17g} {xyz[1]:.17g} {xyz[2]:.17g} "
                      f"{pack.diam[k] / 2:.17g} {int(net.rattler[k])}\n")
     os.replace(tmp, path)

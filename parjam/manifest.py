@@ -44,6 +44,7 @@ def run_parameters(args):
         # only when not the default, so that directories written before the option resume
         **({"phic_method": args.phic_method}
            if getattr(args, "phic_method", "bisect") != "bisect" else {}),
+        **({"start_sha256": args.start_sha256} if getattr(args, "start", None) else {}),
     }
 
 

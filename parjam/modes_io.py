@@ -12,7 +12,10 @@ plus
     /dos/omega, /dos/edges, /dos/density  D(omega) per mode (attrs: binning, normalisation, D0,
                                           omega_star, plateau window)
 
-with the run's settings as attributes of /modes.  Written atomically by rank 0 only.
+with the run's settings as attributes of /modes, and the packing the modes belong to as
+/particles/all (box, positions, diameters, species: parjam.io.write_particles), so that H5MD
+readers such as MDAnalysis open a spectrum file like a packing file.  Written atomically by
+rank 0 only.
 """
 
 import json
@@ -49,13 +52,19 @@ def mode_attrs(spec, system, packing_path, ranks):
 
 def write_spectrum(path, spec, system, packing_path, dos, prov):
     """Write one spectrum file (call on rank 0 only)."""
+    pack = io.read_packing(packing_path) if packing_path else None
     with io.atomic_h5(path) as f:
         io.write_h5md_header(f, prov)
+        if pack is not None:
+            io.write_particles(f, pack)
         g = f.create_group("modes")
         for key, val in mode_attrs(spec, system, packing_path, prov.get("ranks", 1)).items():
             g.attrs[key] = val
-        g.create_dataset("eigenvalue", data=spec.eigenvalue)
-        g.create_dataset("frequency", data=spec.frequency)
+        # omega in units of 1/tau, tau = sigma sqrt(m / epsilon) with unit masses m = 1
+        g.create_dataset("eigenvalue", data=spec.eigenvalue).attrs["unit"] = \
+            io.fixed_string("tau-2")
+        g.create_dataset("frequency", data=spec.frequency).attrs["unit"] = \
+            io.fixed_string("tau-1")
         g.create_dataset("error", data=spec.error)
         g.create_dataset("participation_ratio", data=spec.participation_ratio)
         g.create_dataset("eps_perp", data=spec.eps_perp)
@@ -80,12 +89,23 @@ def write_dos(f, dos):
             g.attrs[key] = val
 
 
-def dos_record(omega, n_modes, bins=40, log=False, omega_min=None, plateau=None):
-    """D(omega) of one spectrum on bins up to its highest computed frequency, with D0 and
-    omega* (definitions in parjam.observables)."""
+MAX_AUTO_BINS = 40
+
+
+def auto_bins(n_frequencies):
+    """Bins for ``n`` computed frequencies when none are asked for: about sqrt(n), between 3 and
+    40, so that a few lowest modes (``--k 20``) give a histogram rather than a comb of bins
+    holding 0 or 1 mode."""
+    return int(min(MAX_AUTO_BINS, max(3, round(np.sqrt(n_frequencies)))))
+
+
+def dos_record(omega, n_modes, bins=None, log=False, omega_min=None, plateau=None):
+    """D(omega) of one spectrum on bins up to its highest computed frequency (``bins`` None:
+    :func:`auto_bins`), with D0 and omega* (definitions in parjam.observables)."""
     pos = np.asarray(omega)[np.asarray(omega) > 0]
     if len(pos) == 0:
         raise ParjamError("no positive frequency: cannot build D(omega)")
+    bins = auto_bins(len(pos)) if bins is None else bins
     edges = observables.dos_edges(float(pos.max()), bins, log, omega_min)
     centres, density = observables.density_of_states(pos, n_modes, edges)
     d0, wstar, window = observables.dos_summary(pos, n_modes, plateau)

@@ -1,11 +1,14 @@
-"""The contact network of a packing: contacts, rattlers, coordination z and dz = z - 2d,
-the isostatic count, pressure, stress tensor and residual forces.
+"""The contact network of a packing: contacts, rattlers, coordination z, dz = z - 2d and
+dz_iso = z - z_iso, the isostatic count, pressure, stress tensor and residual forces.
 
 Conventions (the paper's, and the reference data's):
 - a contact is an overlapping pair, r_ij < sigma_ij = (s_i + s_j)/2;
 - rattlers have fewer than d + 1 contacts and are removed iteratively; N' particles remain,
   Nc contacts among them, z = 2 Nc / N', dz = z - z_c with z_c = 2d;
-- isostatic count in a periodic box: Nc_iso = d (N' - 1) + 1;
+- isostatic count in a periodic box: Nc_iso = d (N' - 1) + 1, z_iso = 2 Nc_iso / N';
+- two names, never mixed up: dz = z - 2d (slightly negative at phi_c, by -2(d - 1)/N') and
+  dz_iso = z - z_iso = 2 (Nc - Nc_iso) / N' (zero at phi_c; the paper's delta z in the scaling
+  laws and figures);
 - pressure p = -(1/(d V)) sum_contacts r V'(r), stress sigma_ab = -(1/V) sum V'(r) r_a r_b / r.
 """
 
@@ -114,7 +117,13 @@ class Network:
 
     @property
     def dz(self):
+        """z - 2d."""
         return self.z - 2.0 * self.d
+
+    @property
+    def dz_iso(self):
+        """z - z_iso = 2 (Nc - Nc_iso) / N' (module doc)."""
+        return 2.0 * self.excess / self.n_active if self.n_active else 0.0
 
     @property
     def n_rattlers(self):
@@ -124,7 +133,8 @@ class Network:
         return {
             "phi": self.phi, "N": self.n, "N_active": self.n_active,
             "n_rattlers": self.n_rattlers, "Nc": self.n_contacts, "Nc_iso": self.n_iso,
-            "excess": self.excess, "z": self.z, "dz": self.dz, "pressure": self.pressure,
+            "excess": self.excess, "z": self.z, "dz": self.dz, "dz_iso": self.dz_iso,
+            "pressure": self.pressure,
             "energy_per_particle": self.energy / self.n, "max_force": self.max_force,
             "max_force_rel": self.max_force / self.mean_force if self.mean_force else np.inf,
         }

@@ -46,6 +46,8 @@ class PackingProtocol:
     no_phic_file: bool = False
     resume: bool = True  # parjam pack --no-resume: recompute members and drop checkpoints
     checkpoint_every: float = 0.0  # seconds between a member's checkpoints (0: none)
+    start: Optional[str] = None  # pack --from FILE: start from this packing, not at random
+    start_sha256: Optional[str] = None  # of that file (the manifest keys a resumed run by it)
 
     def __post_init__(self):
         if self.phi_start is None:

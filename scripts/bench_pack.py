@@ -97,8 +97,10 @@ def parjam_cmd(ranks, args):
 
 
 def read_params(path):
+    from parjam import io
+
     with h5py.File(path) as f:
-        return dict(f["parameters"].attrs), float(f["observables/max_force"][()])
+        return dict(f["parameters"].attrs), float(io.observable(f, "max_force"))
 
 
 def main():

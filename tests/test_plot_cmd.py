@@ -41,6 +41,11 @@ def png_size(path):
         return im.size
 
 
+def inches(width, height, dpi=150):
+    """Pixel size of a figure of width x height inches drawn at dpi (matplotlib rounds)."""
+    return (int(round(width * dpi)), int(round(height * dpi)))
+
+
 def leftovers(directory):
     """Temporary files of atomic writes left in a directory (there must be none)."""
     return glob.glob(os.path.join(directory, ".*tmp*"))
@@ -141,12 +146,12 @@ def test_results_directory_fits_and_figures(synthetic, shared_tmp, capsys):
     eq = fits["eq33/synthetic-N512"]
     assert eq["A1"] == pytest.approx(K**2, rel=0.01) and eq["A2"] == pytest.approx(A2, rel=0.1)
     assert fits["size/synthetic-N512"] == {"N": 512, "members": 4}
-    # only the figures with data, at their figure size x 80 dpi
+    # only the figures with data, at their figure size x 150 dpi
     assert sorted(os.listdir(img)) == ["repro_diag.png", "repro_eq33.png", "repro_fig1.png",
                                        "repro_sans.png"]
-    assert png_size(os.path.join(img, "repro_sans.png")) == (368, 288)  # 4.6 x 3.6 in
-    assert png_size(os.path.join(img, "repro_diag.png")) == (384, 296)  # 4.8 x 3.7 in
-    assert png_size(os.path.join(img, "repro_fig1.png")) == (368, 272)  # one 4.6 x 3.4 panel
+    assert png_size(os.path.join(img, "repro_sans.png")) == inches(4.6, 3.6)
+    assert png_size(os.path.join(img, "repro_diag.png")) == inches(4.8, 3.7)
+    assert png_size(os.path.join(img, "repro_fig1.png")) == inches(4.6, 3.4)  # one panel
     out = capsys.readouterr().out
     if RANK == 0:
         assert "no data for: compare, trans, fluct, hertz, softmodes" in out
@@ -160,7 +165,7 @@ def test_one_figure_to_out_and_the_script_wrapper(synthetic, shared_tmp):
     fits_path = os.path.join(shared_tmp, "fits-diag.json")
     assert cli.main(["plot", synthetic, "--figures", "diag", "--out", png, "--json", fits_path,
                      "-q"]) == 0
-    assert png_size(png) == (384, 296)
+    assert png_size(png) == inches(4.8, 3.7)
     fits = json.load(open(fits_path))
     assert {k.split("/")[0] for k in fits} == {"diag", "eq33", "eq33_relaxed_ratio", "size"}
     if RANK == 0:
@@ -218,14 +223,14 @@ def test_a_real_run_directory(shared_tmp):
                                              ("fig1", "compare", "sans", "eq33", "diag"))
     for name in os.listdir(img):
         w, h = png_size(os.path.join(img, name))
-        assert 300 < w < 400 and 250 < h < 300
+        assert 600 < w < 750 and 480 < h < 570  # 150 dpi
     fits = json.load(open(fits_path))
     assert 0.2 < fits["diag/d2-bi-N64"]["exponent"] < 0.8  # dz ~ p^(1/2), two tiny members
     assert fits["size/d2-bi-N64"] == {"N": 64, "members": 2}
     summary = glob.glob(os.path.join(out, "summary-*.h5"))[0]
     png = os.path.join(shared_tmp, "tiny-compare.png")
     assert cli.main(["plot", summary, "--figures", "compare", "--out", png, "-q"]) == 0
-    assert png_size(png) == (368, 272)
+    assert png_size(png) == inches(4.6, 3.4)
 
 
 # --------------------------------------------------------------------------- single files
@@ -246,18 +251,18 @@ def result_files(shared_tmp):
 
 
 @pytest.mark.parametrize("inputs, extra, size", [
-    (["spec.h5", "spec2.h5"], [], (1430, 418)),  # 13 x 3.8 in at 110 dpi
-    (["dos.h5"], [], (550, 418)),
-    (["soft.h5"], [], (684, 259)),
-    (["mod1.h5", "mod2.h5"], [], (855, 342)),
-    ([SOFT2D], ["--figures", "softfig", "--ncut", "8"], (540, 540)),
-    ([SOFT2D], ["--figures", "figs"], (720, 403)),
+    (["spec.h5", "spec2.h5"], [], (13, 3.8)),  # inches, drawn at 150 dpi
+    (["dos.h5"], [], (5, 3.8)),
+    (["soft.h5"], [], (9.5, 3.6)),
+    (["mod1.h5", "mod2.h5"], [], (9.5, 3.8)),
+    ([SOFT2D], ["--figures", "softfig", "--ncut", "8"], (7.5, 7.5)),
+    ([SOFT2D], ["--figures", "figs"], (10, 5.6)),
 ])
 def test_single_result_files(result_files, shared_tmp, inputs, extra, size):
     png = os.path.join(shared_tmp, "single", f"{os.path.basename(inputs[0])}-{len(extra)}.png")
     args = [p if os.path.isabs(p) else os.path.join(result_files, p) for p in inputs]
     assert cli.main(["plot", *args, "--out", png, "-q", *extra]) == 0
-    assert png_size(png) == size
+    assert png_size(png) == inches(*size)
     assert not leftovers(os.path.dirname(png))
 
 

@@ -20,7 +20,7 @@ import pytest
 from parjam import cli, env, kernels, network, order, potential, spectrum
 from parjam.ensemble import REL_FORCE_WARN, quality_checks
 from parjam.errors import ParjamError
-from parjam.io import read_packing, write_packing
+from parjam.io import observable, read_packing, write_packing
 from parjam.packing import PHI_MAX, make_jammed, random_packing
 from parjam.system import Packing
 
@@ -117,8 +117,8 @@ def test_monodisperse_2d_crystallises_and_is_flagged():
         path = os.path.join(tmp, "mono.h5")
         write_packing(path, mono, network.analyze(mono), {}, observables=extra)
         with h5py.File(path) as f:
-            assert f["observables/crystallised"][()] == 1
-            assert f["observables/hexatic_order_local"][()] == pytest.approx(local_mono)
+            assert observable(f, "crystallised") == 1
+            assert observable(f, "hexatic_order_local") == pytest.approx(local_mono)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

@@ -9,6 +9,7 @@ def add_parser(sub):
     p = sub.add_parser("analyze", help="contact network summary of packing files",
                        description="Contacts, rattlers (fewer than d+1 contacts, removed "
                        "iteratively), N', z, dz = z - 2d, Nc - Nc_iso with Nc_iso = d(N'-1)+1, "
+                       "dz_iso = z - z_iso = 2(Nc - Nc_iso)/N', "
                        "pressure, energy per particle, phi and the residual force.")
     p.add_argument("files", nargs="+", help="packing HDF5 files")
     p.add_argument("--json", action="store_true", help="one JSON object per file")

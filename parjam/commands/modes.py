@@ -39,7 +39,8 @@ def add_parser(sub):
                    help="accept pairs with ||D v - lambda v|| / ||D||_inf <= TOL (1e-10)")
     p.add_argument("--target", type=float,
                    help="sinvert target (default -1e-9 ||D||_inf, just below the zero cluster)")
-    p.add_argument("--bins", type=int, default=40, help="D(omega) bins (40)")
+    p.add_argument("--bins", type=int, help="D(omega) bins (default: about the square root of "
+                   "the number of modes computed, 3 to 40)")
     p.add_argument("--log-bins", action="store_true", help="logarithmic D(omega) bins")
     p.add_argument("--omega-min", type=float, help="lowest edge of log bins")
     p.add_argument("--plateau", help="plateau window W1,W2 for D0 and omega* (default: see docs)")
@@ -63,7 +64,7 @@ def validate(args):
         raise ParjamError(f"--k must be >= 1, got {args.k}")
     args.window_pair = parse_pair(args.window, "--window") if args.window else None
     args.plateau_pair = parse_pair(args.plateau, "--plateau") if args.plateau else None
-    if not 1 <= args.bins <= MAX_BINS:
+    if args.bins is not None and not 1 <= args.bins <= MAX_BINS:
         raise ParjamError(f"--bins must lie in [1, {MAX_BINS}], got {args.bins}")
     if os.path.abspath(args.out) == os.path.abspath(args.packing) or any(
             os.path.abspath(p) == os.path.abspath(args.packing)

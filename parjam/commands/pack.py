@@ -46,6 +46,9 @@ def add_parser(sub):
                    help="compress up from phi_c, or decompress from the largest dphi downwards")
     p.add_argument("--phi-start", type=float, help="phi of the random start (0.86 in 2D, "
                    "0.66 in 3D)")
+    p.add_argument("--from", dest="start", metavar="FILE",
+                   help="start from this packing (e.g. made by `parjam import`) instead of "
+                   "random positions: one member, its d, N and diameters; --alpha applies")
     p.add_argument("--seed", type=int, default=0, help="ensemble seed (member m uses [seed, m])")
     p.add_argument("--members", type=int, default=1, help="ensemble size")
     p.add_argument("--ftol", type=float, default=DEFAULT_FTOL, help="max |F| tolerance (1e-13)")
@@ -66,6 +69,8 @@ def add_parser(sub):
 
 
 def validate(args):
+    if getattr(args, "start", None):
+        start_from_file(args)
     if args.dim not in (2, 3):
         raise ParjamError(f"--dim must be 2 or 3, got {args.dim}")
     if args.n < 16:
@@ -105,6 +110,21 @@ def validate(args):
         raise ParjamError("--phic-method extrapolate needs --dphi or --pressure, not --phi")
     if args.phi_start is None:
         args.phi_start = DEFAULT_PHI_START[args.dim]
+
+
+def start_from_file(args):
+    """--from FILE: d, N, phi_start and the dispersity label come from the file (read again,
+    with --alpha, by parjam.importer.from_file in each member's group)."""
+    from parjam.io import read_packing, sha256
+
+    if args.members != 1:
+        raise ParjamError(f"--from starts one configuration: --members must be 1, got "
+                          f"{args.members}")
+    pack = read_packing(args.start)
+    args.dim, args.n, args.phi_start = pack.d, pack.n, pack.phi
+    args.dispersity = {1: "mono", 2: "bi"}.get(len(set(pack.diam.tolist())), "poly")
+    args.ratio = float(pack.diam.max() / pack.diam.min())
+    args.start_sha256 = sha256(args.start)
 
 
 def prepare_output(args, params):
@@ -171,7 +191,7 @@ def _run(args):
     validate(args)
     from parjam import env, manifest
     from parjam.ensemble import pack_member, print_table, rows_from_files
-    from parjam.progress import Progress
+    from parjam.progress import Progress, Relay
 
     PETSc = env.petsc()
     world = PETSc.COMM_WORLD
@@ -189,7 +209,8 @@ def _run(args):
         raise ParjamError(outcome)
     done, notes = outcome
     done = {m: files for m, files in done.items() if m < args.members}
-    progress = Progress(world, args.quiet)
+    relay = Relay(mpi)  # every group's progress lines reach world rank 0
+    progress = Progress(world, args.quiet, relay=relay)
     for note in notes:
         progress(note)
     if done:
@@ -201,9 +222,10 @@ def _run(args):
     stage = PETSc.Log.Stage("parjam pack")
     stage.push()
     for m in mine:
-        rows += pack_member(protocol, m, comm, progress.sub(f"member {m + 1}/{args.members}: "),
-                            params)
+        rows += pack_member(protocol, m, comm,
+                            progress.group(comm, f"member {m} of {args.members}: "), params)
     stage.pop()
+    relay.close()
     all_rows = mpi.gather(rows, root=0)
     if world.getRank() == 0:
         from parjam import checkpoint

@@ -5,6 +5,10 @@ import contextlib
 import os
 
 
+DPI = 150  # every PNG: labels and legends (>= 8 pt) readable at the size they are drawn
+LEGEND_FONTSIZE = 8
+
+
 def pyplot():
     """matplotlib.pyplot on the non-interactive Agg backend (no display needed)."""
     import matplotlib
@@ -12,6 +16,7 @@ def pyplot():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    plt.rcParams.update({"savefig.dpi": DPI, "legend.fontsize": LEGEND_FONTSIZE})
     return plt
 
 

@@ -12,7 +12,7 @@ import json
 
 import numpy as np
 
-from parjam.plot import pyplot
+from parjam.plot import DPI, LEGEND_FONTSIZE, pyplot
 
 
 def _label(fits):
@@ -47,9 +47,9 @@ def scaling_figure(results, path):
         a.set_xscale("log")
         a.set_yscale("log")
         a.set(xlabel=r"$\Delta\phi$", title=name)
-        a.legend(fontsize=7)
+        a.legend(fontsize=LEGEND_FONTSIZE)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
 
@@ -85,20 +85,21 @@ def structure_figure(path_h5, path, omega_max=None, bins=60):
         img = np.log10(np.maximum(F.T, 1e-4))
         ax[j].pcolormesh(np.append(k - 0.5 * np.diff(k, prepend=0), k[-1]), edges, img,
                          shading="flat", cmap="viridis", vmin=-3)
-        ax[j].plot(k, peaks[part], "w.", ms=5, label="peak")
+        ax[j].plot(k, peaks[part], "o", ms=4, mfc="white", mec="black", mew=0.7, ls="none",
+                   label="peak")
         c = a.get(f"c_{part}")
         if c is not None:
             ax[j].plot(kk, c * kk, "r--", lw=1, label=f"$c_{part} k$ (moduli)")
         cf = a.get(f"c_{part}_fit")
         if cf is not None:
-            ax[j].plot(kk, cf * kk, "w:", lw=1, label="fit, smallest k")
+            ax[j].plot(kk, cf * kk, ":", color="magenta", lw=1.5, label="fit, smallest k")
         if "omega_star" in a:
             ax[j].axhline(a["omega_star"], color="orange", lw=1, label=r"$\omega^*$")
         ax[j].set(xlabel="k", ylabel=r"$\omega$", ylim=(0, wmax),
                   title=f"log10 F_{part}(k, omega)")
-        ax[j].legend(fontsize=7, loc="upper left")
+        ax[j].legend(fontsize=LEGEND_FONTSIZE, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
 
@@ -124,12 +125,12 @@ def lengths_figure(results, path):
     x = np.geomspace(0.1, 3, 10)
     ax.plot(x, 3 / x, "k-", lw=0.7, label="slope -1")
     ax.plot(x, 0.8 / np.sqrt(x), "k--", lw=0.7, label="slope -1/2")
-    ax.set(xscale="log", yscale="log", xlabel=r"$\delta z$", ylabel="length (diameters)")
+    ax.set(xscale="log", yscale="log", xlabel=r"dz $= z - 2d$", ylabel="length (diameters)")
     handles, labels = ax.get_legend_handles_labels()
     unique = dict(zip(labels, handles))  # one entry per quantity and dimension
-    ax.legend(unique.values(), unique.keys(), fontsize=6, ncol=2)
+    ax.legend(unique.values(), unique.keys(), fontsize=LEGEND_FONTSIZE, ncol=2)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
 
@@ -165,9 +166,9 @@ def moduli_files_figure(paths_h5, path):
     for a, name in zip(ax, ("modulus", "G / B")):
         a.set(xscale="log", yscale="log", xlabel="pressure p", ylabel=name)
         if a.get_legend_handles_labels()[0]:
-            a.legend(fontsize=7)
+            a.legend(fontsize=LEGEND_FONTSIZE)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
 

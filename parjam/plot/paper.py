@@ -21,14 +21,13 @@ import h5py
 import numpy as np
 
 from parjam.errors import ParjamError
-from parjam.plot import atomic_png, pyplot
+from parjam.plot import DPI, LEGEND_FONTSIZE, atomic_png, pyplot
 from parjam.fits import fit_eq33, fit_power, law, log_slope
 from parjam.study.summary import read_summary
 
 #: figure group -> the bundled scenes (subdirectories of a results directory) that feed it
 SCENES = {"paper": ("paper-3d", "paper-2d", "paper-3d-10x"), "hertz": ("hertz-3d",),
           "softmodes": ("softmodes-3d",)}
-DPI = 80
 
 
 # --------------------------------------------------------------------------- summaries
@@ -139,7 +138,7 @@ def fig1(plt, systems, fits):
                 ax.plot(dos["omega"], dos["density"], "-", lw=1.2,
                         label=rf"$\delta\phi$ = {value(lab):.0e}")
         ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}, full matrix")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -172,7 +171,7 @@ def compare(plt, systems, fits):
                 ax.semilogy(c[d > 0], d[d > 0], ls, color=f"C{k}", lw=1.1,
                             label=f"{matrix} {value(lab):.0e}")
         ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}: full (-) vs relaxed (--)")
-        ax.legend(fontsize=6, ncol=2)
+        ax.legend(fontsize=LEGEND_FONTSIZE, ncol=2)
     return fig
 
 
@@ -195,7 +194,7 @@ def _sans_states(s):
 
 
 def sans(plt, systems, fits):
-    """Fig. "sans": omega* of the relaxed system against dz (the states of _sans_states)."""
+    """Fig. "sans": omega* of the relaxed system against dz_iso (the states of _sans_states)."""
     fig, ax = plt.subplots(figsize=(4.6, 3.6))
     for k, (name, s) in enumerate(systems.items()):
         labs = _sans_states(s)
@@ -207,8 +206,9 @@ def sans(plt, systems, fits):
         x = np.geomspace(np.nanmin(dz[dz > 0]), np.nanmax(dz), 20)
         ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
                   label=f"{name}: slope {law(f)}")
-    ax.set(xlabel=r"$\delta z$", ylabel=r"$\omega^*$ (relaxed)", title=r"$\omega^* \sim \delta z$")
-    ax.legend(fontsize=7)
+    ax.set(xlabel=r"dz_iso $= z - z_{iso}$", ylabel=r"$\omega^*$ (relaxed)",
+           title=r"$\omega^* \sim$ dz_iso")
+    ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -236,7 +236,7 @@ def trans(plt, systems, fits):
         x = np.geomspace(w.min(), w.max(), 20)
         ax.loglog(x, np.exp(a) * x**2, "k--", lw=0.8, label=r"$\propto\omega^2$")
         ax.set(xlabel=r"$\omega$", ylabel="sum per mode", title=rf"{name}, $\delta\phi=10^{{-8}}$")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -269,7 +269,7 @@ def _eq33_ok(s):
 
 
 def eq33(plt, systems, fits):
-    """Eq. (33): omega_AM^2 = A1 dz^2 - A2 p, omega_AM the onset of the full system's D(omega)
+    """Eq. (33): omega_AM^2 = A1 dz_iso^2 - A2 p, omega_AM the onset of the full system's D(omega)
     (its omega*)."""
     fig, ax = plt.subplots(figsize=(4.6, 3.6))
     for k, (name, s) in enumerate(systems.items()):
@@ -279,9 +279,9 @@ def eq33(plt, systems, fits):
                   label=f"{name}: A1 = {f['A1']:.3g}, A2 = {f['A2']:.3g}")
     lim = ax.get_xlim()
     ax.loglog(lim, lim, "k--", lw=0.8)
-    ax.set(xlabel=r"$A_1\delta z^2 - A_2 p$", ylabel=r"$\omega_{AM}^2$",
+    ax.set(xlabel=r"$A_1$ dz_iso$^2 - A_2 p$", ylabel=r"$\omega_{AM}^2$",
            title="Eq. (33), full system")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -290,7 +290,7 @@ def _diag_states(s):
 
 
 def diag(plt, systems, fits):
-    """Fig. "diag" / Eq. (22): dz against p (dphi >= 1e-5), dz = C0 p^(1/2); Eq. (33) gives the
+    """Fig. "diag" / Eq. (22): dz_iso against p (dphi >= 1e-5), dz_iso = C0 p^(1/2); Eq. (33) gives the
     stability line (fitted here too when the eq33 figure is not drawn)."""
     fig, ax = plt.subplots(figsize=(4.8, 3.7))
     for k, (name, s) in enumerate(systems.items()):
@@ -311,9 +311,10 @@ def diag(plt, systems, fits):
             ax.fill_between(x, 1e-6, line, color=f"C{k}", alpha=0.12)
             ax.loglog(x, line, ":", color=f"C{k}", lw=1,
                       label=rf"{name}: unstable below $\sqrt{{A_2 p/A_1}}$")
-    ax.set(xlabel="p", ylabel=r"$\delta z$", title=r"$\delta z = C_0\, p^{1/2}$ (Eq. 22)")
+    ax.set(xlabel="p", ylabel=r"dz_iso $= z - z_{iso}$",
+           title=r"dz_iso $= C_0\, p^{1/2}$ (Eq. 22)")
     ax.set_ylim(bottom=max(ax.get_ylim()[0], 1e-3))
-    ax.legend(fontsize=6)
+    ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -349,7 +350,7 @@ def fluct(plt, systems, fits):
         ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d / 2), "k:", label=f"l^{d / 2:g}")
         ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d - 1), "k-.", label=f"l^{d - 1}")
         ax.set(xlabel="l", ylabel="std in a sub-box", title=name)
-        ax.legend(fontsize=6)
+        ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -358,13 +359,13 @@ def _by_size(systems):
 
 
 def hertz(plt, systems, fits):
-    """Hertzian contacts: dz ~ p^(1/3), omega* ~ p^(1/2), D0 ~ p^(-1/6)."""
+    """Hertzian contacts: dz_iso ~ p^(1/3), omega* ~ p^(1/2), D0 ~ p^(-1/6)."""
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
     for k, (name, s) in enumerate(_by_size(systems)):
         labs = states(s, "p")
         p = table(s, labs, "network", "pressure")
         for ax, (key, y, theory) in zip(axes, (
-                ("dz", table(s, labs, "network", "dz_iso"), 1 / 3),
+                ("dz_iso", table(s, labs, "network", "dz_iso"), 1 / 3),
                 ("omega_star", table(s, labs, "spectrum", "omega_star", "relaxed"), 1 / 2),
                 ("D0", table(s, labs, "spectrum", "D0", "full"), -1 / 6))):
             f = fit_power(p, y)
@@ -374,7 +375,7 @@ def hertz(plt, systems, fits):
             ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
                       label=f"N = {s['attrs']['n']}: {law(f)} (theory {theory:.3g})")
             ax.set(xlabel="p", ylabel=key, title=f"Hertz, alpha = 5/2: {key}")
-            ax.legend(fontsize=7)
+            ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -401,7 +402,7 @@ def softmodes(plt, systems, fits):
         emax.append(np.nanmean(g["trial_energy_max"]))
         wl2.append(np.mean(g["omega_L2"]))
     axes[0].set(xlabel="x / L", ylabel="f(x)", title="overlap function, cut cube")
-    axes[0].legend(fontsize=7)
+    axes[0].legend(fontsize=LEGEND_FONTSIZE)
     Ls = np.array(Ls)
     axes[1].loglog(Ls, emean, "o-", label=r"mean $\langle\delta R^*|M|\delta R^*\rangle$ (e > 0.1)")
     axes[1].loglog(Ls, emax, "s-", label="max trial energy")
@@ -413,7 +414,7 @@ def softmodes(plt, systems, fits):
         Y = np.array([s["phi_c"]["softmodes"]["omega_t2"][:m] for s in ordered]).T
         fits["softmodes/trial_energy_vs_L"] = {**fit_power(X, Y), "theory": -2.0}
     axes[1].set(xlabel="L", ylabel="energy", title="trial modes vs $\\omega_L^2$")
-    axes[1].legend(fontsize=7)
+    axes[1].legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
@@ -442,19 +443,19 @@ FIGURES = {f.name: f for f in (
     Figure("sans", "paper", sans,
            lambda s: _has(s, _sans_states(s), ("network", "dz_iso"),
                           ("spectrum", "relaxed", "omega_star")),
-           "Fig. 'sans': omega* (relaxed) against dz, power-law fit"),
+           "Fig. 'sans': omega* (relaxed) against dz_iso, power-law fit"),
     Figure("trans", "paper", trans, _trans_ok,
            "Fig. 'trans': eps_perp and eps_par per mode at dphi = 1e-8"),
-    Figure("eq33", "paper", eq33, _eq33_ok, "Eq. (33): omega_AM^2 = A1 dz^2 - A2 p"),
+    Figure("eq33", "paper", eq33, _eq33_ok, "Eq. (33): omega_AM^2 = A1 dz_iso^2 - A2 p"),
     Figure("diag", "paper", diag,
            lambda s: _has(s, _diag_states(s), ("network", "dz_iso"), ("network", "pressure")),
-           "Fig. 'diag' / Eq. (22): dz = C0 p^(1/2)"),
+           "Fig. 'diag' / Eq. (22): dz_iso = C0 p^(1/2)"),
     Figure("fluct", "paper", fluct, _fluct_ok,
            "contact-number fluctuations in sub-boxes against l"),
     Figure("hertz", "hertz", hertz,
            lambda s: _has(s, states(s, "p"), ("network", "dz_iso"), ("network", "pressure"),
                           ("spectrum", "relaxed", "omega_star"), ("spectrum", "full", "D0")),
-           "Hertz (alpha = 5/2): dz, omega*, D0 against p"),
+           "Hertz (alpha = 5/2): dz_iso, omega*, D0 against p"),
     Figure("softmodes", "softmodes", softmodes,
            lambda s: all(_get(s, "phi_c", "softmodes", k) is not None for k in _SOFT_KEYS)
            and _get(s, "phi_c", "network", "excess") is not None,

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 
 from parjam import softmodes as sm
-from parjam.plot import pyplot
+from parjam.plot import DPI, LEGEND_FONTSIZE, pyplot
 
 
 def crossing_height(cs, plane):
@@ -82,9 +82,9 @@ def _bonds(ax, pos, c, **kw):
 
 
 def _save(plt, fig, path, colors=64):
-    """PNG at 72 dpi, palette-quantised when Pillow is there (the docs keep small images)."""
+    """PNG at DPI, palette-quantised when Pillow is there (the docs keep small images)."""
     fig.tight_layout()
-    fig.savefig(path, dpi=72)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
     try:
         from PIL import Image
@@ -179,12 +179,12 @@ def overlap_figure(path_h5, path):
     ax[0].axhline(c, color="k", ls=":", lw=0.8, label=f"c = {c:.3f} ({cn:.3f})")
     ax[0].set(xlabel=f"{axis} / L from the first plane", ylabel="f(x)",
               title=f"overlap function, cut {planes} (q = {q})")
-    ax[0].legend(fontsize=7)
+    ax[0].legend(fontsize=LEGEND_FONTSIZE)
     ax[1].semilogy(np.arange(1, len(ext) + 1), np.maximum(ext, 1e-16), ".", ms=3)
     ax[1].axhline(e0, color="k", ls="--", lw=0.8,
                   label=f"e0 = {e0:g}: q' = {int(np.sum(ext > e0))} of {len(ext)}")
     ax[1].set(xlabel="soft mode (by extension)", ylabel="extension e", title="extension")
-    ax[1].legend(fontsize=7)
+    ax[1].legend(fontsize=LEGEND_FONTSIZE)
     _save(plt, fig, path)
 
 

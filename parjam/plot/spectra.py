@@ -3,7 +3,7 @@ the transverse/longitudinal ratio eps_perp/eps_par per mode (Fig. "trans") and p
 
 import numpy as np
 
-from parjam.plot import pyplot
+from parjam.plot import DPI, pyplot
 from parjam.study.summary import read_summary
 
 
@@ -32,7 +32,7 @@ def spectra_figure(spectra, path):
     for a in ax:
         a.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
 
@@ -46,7 +46,7 @@ def ensemble_dos_figure(omega, density, error, path, label="ensemble", omega_sta
     ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$ per mode")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
 
@@ -66,7 +66,7 @@ def dos_pictures(path, stem, dpi):
                             lw=1, label=lab)
         ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$ per mode",
                title=f"{s['attrs']['system']}: {kind}")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=8)
         fig.tight_layout()
         fig.savefig(f"{stem}-dos-{kind}.png", dpi=dpi)
         plt.close(fig)

@@ -12,9 +12,6 @@ def network_record(pack):
     """z, dz, p and the rest of the contact-network summary (parjam.network)."""
     rec = dict(network.analyze(pack).summary())
     rec["phi_c"] = float(pack.meta.get("phi_c", np.nan))
-    # dz measured from the isostatic count, 2 (Nc - Nc_iso) / N': z - 2d without its finite-size
-    # offset -2d/N' (z = 2d - 2d/N' + 2/N' at isostaticity in a periodic box)
-    rec["dz_iso"] = 2.0 * rec["excess"] / rec["N_active"] if rec["N_active"] else np.nan
     return rec
 
 

@@ -154,14 +154,14 @@ class Runner:
             self.counts[st.kind] += 1
             if gm.Get_rank() == 0:
                 self.log(st, m)
-            self.progress(f"{label}: member {m + 1}/{self.scene.members} in "
+            self.progress(f"{label}: member {m} of {self.scene.members} in "
                           f"{time.time() - t0:.1f} s")
         return False
 
     def compute_member(self, st, m, comm):
         if st.kind == "pack":
             protocol = self.scene.packing_protocol(st.system, self.stage_dir(st))
-            sub = self.progress.sub(f"pack {st.system.name} member {m + 1}: ")
+            sub = self.progress.sub(f"pack {st.system.name} member {m}: ")
             sub.enabled = False  # the bisection's lines would drown the stage progress
             try:
                 ensemble.pack_member(protocol, m, comm, sub)

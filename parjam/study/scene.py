@@ -461,4 +461,4 @@ def _obs_fluctuations(t, protocol, ladder, lowest, min_modes):
 
 
 def _obs_pictures(t, protocol, ladder, lowest, min_modes):
-    return {"dpi": t.int("dpi", 90, lo=20, hi=600)}
+    return {"dpi": t.int("dpi", 150, lo=20, hi=600)}

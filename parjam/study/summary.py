@@ -115,8 +115,7 @@ def read_summary(path):
 
 
 def summary_table(path):
-    """One line per state: ensemble means of dz (from the isostatic count), p and the spectra's
-    omega*."""
+    """One line per state: ensemble means of dz_iso = z - z_iso, p and the spectra's omega*."""
     s = read_summary(path)
     lines = [f"{s['attrs']['system']} ({s['attrs']['members']} members): {os.path.basename(path)}"]
     for label in [x.decode() for x in s["attrs"]["states"]]:
@@ -124,7 +123,7 @@ def summary_table(path):
             continue
         parts = [f"  {label:>12}"]
         net = s[label].get("network", {})
-        for q, name in (("dz_iso", "dz"), ("pressure", "p")):
+        for q, name in (("dz_iso", "dz_iso"), ("pressure", "p")):
             if q in net:
                 parts.append(f"{name} {np.nanmean(net[q]):.4g}")
         for kind, val in sorted(s[label].get("spectrum", {}).items()):

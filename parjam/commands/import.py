@@ -1,0 +1,73 @@
+"""``parjam import``: a configuration made elsewhere (extended XYZ, LAMMPS data or dump, another
+program's H5MD) as a parjam packing file, which ``parjam pack --from`` minimises, brings to phi_c
+and compresses along a dphi ladder (parjam.importer)."""
+
+import os
+import sys
+
+from parjam.errors import ParjamError
+
+
+def add_parser(sub):
+    from parjam.importer import FORMATS
+
+    p = sub.add_parser(
+        "import", help="bring in a packing made elsewhere (extended XYZ, LAMMPS, H5MD)",
+        description="Read the last frame of FILE (extended XYZ of ASE/OVITO, LAMMPS data "
+        "(atom_style atomic or sphere) or text dump, or H5MD of another program) in a periodic "
+        "cubic/square box, rescale lengths so that the smallest diameter is 1, and write a "
+        "parjam packing file with its contact network. `parjam pack --from OUT` then minimises "
+        "it, finds phi_c and runs the dphi ladder.")
+    p.add_argument("file", help="the configuration to import")
+    p.add_argument("--out", help="output packing (default: FILE's name with .parjam.h5)")
+    p.add_argument("--format", choices=FORMATS,
+                   help="default: from the extension (.xyz/.extxyz, .data/.lmp, "
+                   ".dump/.lammpstrj, .h5/.h5md)")
+    p.add_argument("--diameters", type=float, nargs="+", metavar="D",
+                   help="diameters of the species (LAMMPS types) in increasing order, for files "
+                   "that give none (default: 1 when there is one species)")
+    p.add_argument("--dim", type=int, choices=(2, 3),
+                   help="dimension (default: from the file; LAMMPS: 2 when every z is equal)")
+    p.add_argument("--alpha", type=float, default=2.0,
+                   help="potential exponent when the file names none (default: 2)")
+    p.set_defaults(run=run)
+
+
+def output_path(args):
+    if args.out:
+        return args.out
+    return os.path.splitext(args.file)[0] + ".parjam.h5"
+
+
+def run(args):
+    from mpi4py import MPI
+
+    from parjam import importer, io
+    from parjam.network import analyze
+
+    out = output_path(args)
+    if os.path.isdir(out):
+        raise ParjamError(f"--out {out} is a directory")
+    if os.path.abspath(out) == os.path.abspath(args.file):
+        raise ParjamError(f"--out {out} would overwrite the input")
+    for dval in args.diameters or []:
+        if not dval > 0:
+            raise ParjamError(f"--diameters must be positive, got {dval}")
+    pack = importer.load(args.file, args.format, args.diameters, args.dim, args.alpha)
+    net = analyze(pack)
+    meta = pack.meta
+    params = {"protocol": "imported", "ladder": "none", "state": "imported",
+              "dimension": pack.d, "n": pack.n, "source": meta["source"],
+              "source_format": meta["source_format"], "length_scale": meta["length_scale"]}
+    if MPI.COMM_WORLD.Get_rank() == 0:
+        try:
+            io.write_packing(out, pack, net, params, io.provenance(MPI.COMM_WORLD.Get_size()))
+        except OSError as exc:
+            raise ParjamError(f"{out}: cannot write ({exc.strerror})", collective=False) from None
+        print(f"{out}: N = {pack.n}, d = {pack.d}, phi = {pack.phi:.6f}, "
+              f"{len(set(meta['species'].tolist()))} species, lengths x {meta['length_scale']:.6g}, "
+              f"N' = {net.n_active}, z = {net.z:.4f}, max|F| = {net.max_force:.2e}", flush=True)
+        if net.max_force > 1e-8:
+            print(f"parjam: note: not in force balance (max|F| = {net.max_force:.1e}): "
+                  f"`parjam pack --from {out}` minimises it", file=sys.stderr, flush=True)
+    return 0
