@@ -58,6 +58,8 @@ def add_parser(sub):
                    help="write DIR/.checkpoint/memberM.h5 at most this often (default 300; 0: "
                    "never): a killed or requeued run then resumes inside the member, not from "
                    "its random start")
+    p.add_argument("--force", action="store_true",
+                   help="run even if the memory/time estimate does not fit this machine")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(run=run)
 
@@ -102,6 +104,18 @@ def validate(args):
         raise ParjamError("--phic-method extrapolate needs --dphi or --pressure, not --phi")
     if args.phi_start is None:
         args.phi_start = DEFAULT_PHI_START[args.dim]
+
+
+def fits_machine(args, world):
+    """The memory/time estimate of this ensemble against the machine (parjam.resources),
+    before any work; refused unless --force."""
+    from parjam import resources
+
+    states = len(args.dphi or args.pressure or [args.phi]) + (args.phi is None)
+    rounds = -(-args.members // min(args.members, world.getSize()))  # members per group
+    seconds = rounds * resources.pack_seconds(args.dim, args.n, states, args.phic_method)
+    resources.check(world, resources.pack_memory_mb(args.n), seconds, args.force,
+                    f"pack of {args.members} member(s) at N = {args.n}")
 
 
 def member_groups(world, members, todo=None):
@@ -184,7 +198,7 @@ def run(args):
 
 def _run(args):
     validate(args)
-    from parjam import env, manifest
+    from parjam import env, manifest, outputs
     from parjam.ensemble import pack_member, print_table, rows_from_files
     from parjam.progress import Progress
 
@@ -192,6 +206,8 @@ def _run(args):
     world = PETSc.COMM_WORLD
     mpi = world.tompi4py()
     params = manifest.run_parameters(args)
+    outputs.check(world, dirs=[("--out", args.out)])
+    fits_machine(args, world)
     outcome = None
     if world.getRank() == 0:
         try:

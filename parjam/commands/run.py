@@ -42,29 +42,47 @@ def add_parser(sub):
     p.add_argument("--dry-run", action="store_true",
                    help="print the plan (stages, sizes, solver per stage, estimates) and stop")
     p.add_argument("--out", help="output directory (default results/<scene name>)")
+    p.add_argument("--force", action="store_true",
+                   help="run even if the memory/time estimate does not fit this machine")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(run=run)
 
 
 def run(args):
-    from parjam import env, scene as sc
+    from parjam import env, outputs, resources, scene as sc
     from parjam.progress import Progress
 
     scene = sc.load(args.scene)
     stages = sc.plan(scene)
     PETSc = env.petsc()
     world = PETSc.COMM_WORLD
+    need = machine_need(scene, stages, world)
     if args.dry_run:
+        text = resources.describe(*need)
         if world.getRank() == 0:
-            print(sc.describe(scene, stages), flush=True)
+            print(sc.describe(scene, stages) + "\n" + text, flush=True)
         return 0
     out = args.out or os.path.join("results", scene.name)
+    outputs.check(world, dirs=[("--out", out)], inputs=[args.scene])
+    resources.check(world, need[0], need[1], args.force, f"scene {scene.name!r}")
     progress = Progress(world.tompi4py(), args.quiet, "run: ")
     runner = Runner(scene, stages, out, world, progress)
     code = runner.run()
     if world.getRank() == 0 and code == 0:
         print(runner.report(), flush=True)
     return code
+
+
+def machine_need(scene, stages, world):
+    """(largest memory per rank, wall seconds, ranks on this node) of the plan: the stages run
+    one after another, their members spread over the ranks (parjam.resources)."""
+    from parjam import resources
+
+    ranks = world.getSize()
+    node = resources.ranks_on_node(world.tompi4py())
+    spread = max(min(scene.members, ranks), 1)
+    memory = max((st.memory_mb for st in stages), default=0.0)
+    return memory, sum(st.seconds for st in stages) / spread, node
 
 
 # --------------------------------------------------------------------------- ranks and files
