@@ -48,21 +48,22 @@ def add_parser(sub):
 
 MAX_SAMPLES = 10_000
 MAX_K = 100_000  # as parjam modes: beyond 1e5 lowest pairs use the dense solver
-#: --kmax: the structure factors scan the integer grid |m| <= kmax L / (2 pi) of box
-#: wavevectors, (2 m + 1)^d points; 1e7 of them (80 MB per coordinate) is far beyond the few
-#: shells the dispersion and l_T need
-MAX_GRID = 10_000_000
+#: --kmax: the structure factors take a phase exp(i k.r) per box wavevector of the grid
+#: |m| <= kmax L / (2 pi), (2 m + 1)^d points, and particle: 1e8 of them (1.6 GB of complex
+#: numbers) is far beyond the few shells up to ~pi / sigma that the dispersion and l_T need
+MAX_PHASES = 100_000_000
 
 
 def check_kmax(kmax, pack):
-    """Bound the wavevector grid of --kmax before it is allocated (the box is known only now)."""
+    """Bound the work of --kmax before anything is allocated (the box is known only now)."""
     if kmax is None:
         return
-    m = int(np.floor(kmax * pack.L / (2.0 * np.pi)))
-    if (2.0 * m + 1.0) ** pack.d > MAX_GRID:
-        raise ParjamError(f"--kmax {kmax:g} spans {2 * m + 1}^{pack.d} box wavevectors (more "
-                          f"than {MAX_GRID:.0e}); the structure factors need k up to a few "
-                          f"pi / sigma: lower --kmax")
+    m = np.floor(kmax * pack.L / (2.0 * np.pi))
+    phases = (2.0 * m + 1.0) ** pack.d * pack.n
+    if not phases <= MAX_PHASES:
+        raise ParjamError(f"--kmax {kmax:g} spans {2 * m + 1:.3g}^{pack.d} box wavevectors x "
+                          f"{pack.n} particles (more than {MAX_PHASES:.0e} phases); the "
+                          f"structure factors need k up to a few pi / sigma: lower --kmax")
 
 
 def parse_floats(text, name, count=None):

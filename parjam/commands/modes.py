@@ -138,8 +138,25 @@ def dos_or_none(spec, system, args):
 
     if not np.any(spec.physical):  # zero modes (floppy) are no vibrations: not in D(omega)
         return None
-    return modes_io.dos_record(spec.frequency[spec.physical], system.n_modes, args.bins, args.log_bins,
-                               args.omega_min, args.plateau_pair)
+    dos = modes_io.dos_record(spec.frequency[spec.physical], system.n_modes, args.bins,
+                              args.log_bins, args.omega_min, args.plateau_pair)
+    return flag_undefined(dos, spec.matrix)
+
+
+def flag_undefined(dos, kind):
+    """NaN is never stored silently: D0 = 0 or omega* = NaN (a plateau window without modes, or
+    a partial spectrum that never reaches D0/2) is named in /dos attrs ``undefined`` and said on
+    stderr; D0 and omega* are then stored as NaN with that flag."""
+    bad = [key for key in ("D0", "omega_star") if not (np.isfinite(dos[key]) and dos[key] > 0)]
+    dos["undefined"] = ",".join(bad)
+    if bad:
+        dos.update({key: float("nan") for key in bad})
+        w1, w2 = dos["plateau_window"]
+        print(f"parjam: warning: {kind}: {' and '.join(bad)} undefined: the plateau window "
+              f"{w1:.4g},{w2:.4g} holds no mode (stored as NaN, flagged in /dos attrs "
+              f"'undefined'); choose --plateau inside the computed frequencies",
+              file=sys.stderr, flush=True)
+    return dos
 
 
 def write(path, spec, system, packing, dos, prov):

@@ -183,12 +183,13 @@ def run(args):
                           "python3-matplotlib)") from None
     check_output(args, args.inputs)
     kind = input_kind(args.inputs)
-    if kind == "results":
-        return plot_results(args)
-    if args.json is not None:
+    if args.json is not None and kind != "results":
         raise ParjamError("--json is for results (fits of the paper's laws); "
                           f"{args.inputs[0]} is a {kind} file")
-    return plot_file(args, kind)
+    try:
+        return plot_results(args) if kind == "results" else plot_file(args, kind)
+    except ParjamError as exc:  # a failed write (parjam.outputs) on this rank, the only one
+        raise ParjamError(str(exc)) from None  # drawing: the others learn it at the close
 
 
 def say(args, text):
