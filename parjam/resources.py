@@ -87,7 +87,7 @@ def time_limit_seconds(now=None):
             return float(text), "PARJAM_TIME_LIMIT"
         except ValueError:
             raise ParjamError(f"PARJAM_TIME_LIMIT={text!r} is not a number of seconds") from None
-    return MAX_DAYS * 86400.0, f"parjam's sanity limit of {MAX_DAYS:g} days"
+    return MAX_DAYS * 86400.0, "parjam's sanity limit"
 
 
 def ranks_on_node(mpi):

@@ -155,8 +155,9 @@ def test_pack_and_run_refuse_plans_that_do_not_fit(tmp_path, monkeypatch):
         assert_one_line(rc, err, "does not fit this machine")
         rc, _, err = run_cli(["run", scene, "--out", tmp_path / "r", "-q"])
         assert_one_line(rc, err, "does not fit this machine")
-        rc, out, err = run_cli(["run", scene, "--dry-run"])
-        assert rc == 0 and (rank() != 0 or "machine check: DOES NOT FIT" in out), out + err
+        for dry in (["run", scene, "--dry-run"], pack + ["--dry-run"]):
+            rc, out, err = run_cli(dry)
+            assert rc == 0 and (rank() != 0 or "machine check: DOES NOT FIT" in out), out + err
     assert not (tmp_path / "p").exists() and not (tmp_path / "r").exists()
     monkeypatch.setenv("PARJAM_MEMORY_MB", "1e9")
     monkeypatch.setenv("PARJAM_TIME_LIMIT", "1e-3")

@@ -59,8 +59,8 @@ def check_kmax(kmax, pack):
     if kmax is None:
         return
     m = np.floor(kmax * pack.L / (2.0 * np.pi))
-    phases = (2.0 * m + 1.0) ** pack.d * pack.n
-    if not phases <= MAX_PHASES:
+    log_phases = pack.d * np.log10(2.0 * m + 1.0) + np.log10(pack.n)  # no overflow warning
+    if not log_phases <= np.log10(MAX_PHASES):
         raise ParjamError(f"--kmax {kmax:g} spans {2 * m + 1:.3g}^{pack.d} box wavevectors x "
                           f"{pack.n} particles (more than {MAX_PHASES:.0e} phases); the "
                           f"structure factors need k up to a few pi / sigma: lower --kmax")

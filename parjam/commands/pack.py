@@ -60,6 +60,8 @@ def add_parser(sub):
                    "its random start")
     p.add_argument("--force", action="store_true",
                    help="run even if the memory/time estimate does not fit this machine")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the memory/time estimate and whether it fits this machine; stop")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(run=run)
 
@@ -108,14 +110,23 @@ def validate(args):
 
 def fits_machine(args, world):
     """The memory/time estimate of this ensemble against the machine (parjam.resources),
-    before any work; refused unless --force."""
+    before any work; refused unless --force.  True for --dry-run (printed, nothing to do)."""
     from parjam import resources
 
     states = len(args.dphi or args.pressure or [args.phi]) + (args.phi is None)
     rounds = -(-args.members // min(args.members, world.getSize()))  # members per group
     seconds = rounds * resources.pack_seconds(args.dim, args.n, states, args.phic_method)
-    resources.check(world, resources.pack_memory_mb(args.n), seconds, args.force,
+    memory = resources.pack_memory_mb(args.n)
+    if getattr(args, "dry_run", False):
+        text = resources.describe(memory, seconds, resources.ranks_on_node(world.tompi4py()))
+        if world.getRank() == 0:
+            print(f"pack of {args.members} member(s) at N = {args.n}, {states} state(s): "
+                  f"~{memory:.0f} MB per rank, ~{seconds:.0f} s on {world.getSize()} rank(s)\n"
+                  f"{text}", flush=True)
+        return True
+    resources.check(world, memory, seconds, args.force,
                     f"pack of {args.members} member(s) at N = {args.n}")
+    return False
 
 
 def member_groups(world, members, todo=None):
@@ -206,8 +217,9 @@ def _run(args):
     world = PETSc.COMM_WORLD
     mpi = world.tompi4py()
     params = manifest.run_parameters(args)
+    if fits_machine(args, world):  # --dry-run: the estimate only
+        return 0
     outputs.check(world, dirs=[("--out", args.out)])
-    fits_machine(args, world)
     outcome = None
     if world.getRank() == 0:
         try:
