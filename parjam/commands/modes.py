@@ -69,9 +69,11 @@ def output_paths(out, matrices):
 def validate(args):
     if len(set(args.matrix)) != len(args.matrix):
         raise ParjamError("--matrix lists a matrix twice")
-    if args.k is not None and not 1 <= args.k <= MAX_K:
-        raise ParjamError(f"--k must lie in [1, {MAX_K}] (k eigenvectors of d N' numbers each; "
-                          f"more modes: --window or dense), got {args.k}")
+    if args.k is not None and args.k < 1:
+        raise ParjamError(f"--k must be >= 1, got {args.k}")
+    if args.k is not None and args.k > MAX_K:
+        raise ParjamError(f"--k must be <= {MAX_K} (k eigenvectors of d N' numbers each; more "
+                          f"modes: --window or dense), got {args.k}")
     args.window_pair = parse_pair(args.window, "--window") if args.window else None
     args.plateau_pair = parse_pair(args.plateau, "--plateau") if args.plateau else None
     if not 1 <= args.bins <= MAX_BINS:
