@@ -101,7 +101,11 @@ def rank_and_size():
 def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, petsc_args = split_petsc_args(argv)
-    env.init(petsc_args)
+    try:
+        env.init(petsc_args)
+    except ParjamError as exc:  # a broken PETSC_DIR/SLEPC_DIR: before MPI, one line
+        print(f"parjam: error: {exc}", file=sys.stderr, flush=True)
+        return exc.exit_code
     quiet_closed_stdout()
     rank, size = rank_and_size()
     _outcome_comm()  # collective: made here, while every rank is sure to take part

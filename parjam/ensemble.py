@@ -70,20 +70,16 @@ REL_FORCE_WARN = 1e-4  # max|F| / mean contact force above this: force balance i
 # dphi = 1e-8 reaches 1.8e-3)
 
 
-def quality_checks(pack, net, label):
+def quality_checks(pack, net, label, dphi=None):
     """Observables that flag a state which is not what it seems, each with a warning on stderr:
     a crystallised 2D packing (hexatic order, parjam.order) and a force balance that is poor
     relative to the contact forces (e.g. alpha = 3 at dphi = 1e-8, where forces are ~1e-16 and
     the absolute --ftol means little)."""
     from parjam import order
 
-    local, glob = order.hexatic_order(pack)
-    extra = {"hexatic_order_local": local, "hexatic_order_global": glob,
-             "crystallised": np.int8(order.crystallised(local))}
-    if order.crystallised(local):
-        _warn(f"{label}: the packing crystallised (local hexatic order <|psi6|> = {local:.3f} > "
-              f"{order.CRYSTAL_THRESHOLD}): not an amorphous jammed solid; use --dispersity bi "
-              f"or poly in 2D")
+    extra, warning = order.check(pack, net, dphi)  # hexatic order and contact excess
+    if warning:
+        _warn(f"{label}: {warning}")
     rel = net.summary()["max_force_rel"]
     if rel > REL_FORCE_WARN:
         _warn(f"{label}: force balance only {rel:.1e} of the mean contact force "
@@ -146,7 +142,8 @@ def pack_member(args, member, comm, progress, run_params=None):
         if comm.getRank() == 0:
             prov = io.provenance(comm.tompi4py().Get_size(), {"world_ranks": _world_size()})
             st.pack.meta.setdefault("species", st.pack.meta.get("species"))
-            extra = quality_checks(st.pack, net, f"member {member} {st.label}")
+            extra = quality_checks(st.pack, net, f"member {member} {st.label}",
+                                   st.pack.phi - st.info.get("phi_c", np.nan))
             io.write_packing(path, st.pack, net, params, prov, extra)
             paths.append(path)
         if comm.getRank() == 0:  # one row per state, however many ranks share the member

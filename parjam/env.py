@@ -35,14 +35,42 @@ def _default_dirs():
                 sys.path.append(path)
 
 
+def check_dirs(missing=None):
+    """A one-line diagnosis of PETSC_DIR / SLEPC_DIR as set by the user, or None: each must be
+    an existing directory, and the one whose bindings (``missing``: petsc4py or slepc4py)
+    could not be imported is named with the places that were searched."""
+    arch = os.environ.get("PETSC_ARCH", "")
+    for var, module in (("PETSC_DIR", "petsc4py"), ("SLEPC_DIR", "slepc4py")):
+        root = os.environ.get(var)
+        if root is None:
+            continue
+        if not root:
+            return f"{var} is set but empty: unset it or point it at an installation"
+        if not os.path.isdir(root):
+            return f"{var}={root} is not a directory: unset it or point it at an installation"
+        if missing == module:
+            places = " and ".join(os.path.join(root, sub) for sub in (
+                "lib/python3/dist-packages", os.path.join(arch, "lib") if arch else "lib"))
+            return f"{var}={root} holds no {module} (looked in {places})"
+    return None
+
+
 def init(petsc_args=None):
-    """Initialise petsc4py and slepc4py once, passing ``petsc_args`` to the options database."""
+    """Initialise petsc4py and slepc4py once, passing ``petsc_args`` to the options database.
+    A broken PETSC_DIR/SLEPC_DIR or missing bindings are one-line ParjamErrors."""
     global _initialised
     if not _initialised:
         _default_dirs()
-        import petsc4py
-        import slepc4py
+        try:
+            import petsc4py
+            import slepc4py
+        except ImportError as exc:
+            why = check_dirs(exc.name)
+            from parjam.errors import ParjamError
 
+            raise ParjamError(f"cannot import {exc.name or 'petsc4py/slepc4py'}: "
+                              f"{why or 'install petsc4py and slepc4py (see README.md)'}") \
+                from None
         args = [sys.argv[0]] + list(petsc_args or [])
         petsc4py.init(args)
         slepc4py.init(args)

@@ -5,7 +5,6 @@ into place only when complete, so a killed run never leaves a truncated file tha
 Only the caller that owns a file (rank 0 of the group that computed it) writes it.
 """
 
-import contextlib
 import hashlib
 import json
 import os
@@ -19,20 +18,13 @@ from parjam.errors import ParjamError
 from parjam.system import Packing
 
 
-@contextlib.contextmanager
 def atomic_h5(path):
-    """Open ``path`` for writing through a temporary file renamed on success."""
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as f:
-            yield f
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    """Open ``path`` for writing: an in-memory HDF5 file whose image is written atomically when
+    the block succeeds (parjam.outputs: the output policy; a full disk is one line, never a
+    partial file)."""
+    from parjam import outputs
+
+    return outputs.atomic_h5(path)
 
 
 def write_h5md_header(f, provenance=None):

@@ -49,18 +49,11 @@ def run_parameters(args):
 
 
 def write_json(path, obj):
-    """Atomic JSON write: temporary name, fsync, rename."""
-    tmp = os.path.join(os.path.dirname(os.path.abspath(path)),
-                       f".{os.path.basename(path)}.tmp{os.getpid()}")
-    try:
-        with open(tmp, "w") as fh:
-            json.dump(obj, fh, indent=1, sort_keys=True)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    """Atomic JSON write (parjam.outputs: temporary name, fsync, rename; a full disk is one
+    line)."""
+    from parjam import outputs
+
+    outputs.write_bytes(path, json.dumps(obj, indent=1, sort_keys=True).encode())
 
 
 def _read_json(path):
@@ -70,6 +63,33 @@ def _read_json(path):
     except (OSError, ValueError) as exc:
         raise ParjamError(f"{path}: unreadable manifest ({exc}); remove it to start afresh") \
             from None
+
+
+def _bad(path, what):
+    return ParjamError(f"{path}: not a valid parjam pack manifest ({what}); remove it to start "
+                       f"afresh")
+
+
+def _check_files(path, files):
+    """{file name: sha256 hex} of one member, as written by write_member_record."""
+    if not isinstance(files, dict) or not all(
+            isinstance(k, str) and k and os.path.basename(k) == k and isinstance(v, str)
+            for k, v in files.items()):
+        raise _bad(path, "a member's files must map plain file names to sha256 strings")
+    return files
+
+
+def _check_record(path, rec):
+    """A member record of the right structure (valid JSON of the wrong shape was a TypeError)."""
+    if not isinstance(rec, dict):
+        raise _bad(path, f"a JSON object expected, got {type(rec).__name__}")
+    member = rec.get("member")
+    if isinstance(member, bool) or not isinstance(member, int) or member < 0:
+        raise _bad(path, f"member must be a non-negative integer, got {member!r}")
+    if not isinstance(rec.get("parameters"), dict):
+        raise _bad(path, "parameters must be a JSON object")
+    _check_files(path, rec.get("files"))
+    return rec
 
 
 def record_path(out, member):
@@ -94,6 +114,15 @@ def load(out):
     man = _read_json(path)
     if not isinstance(man, dict) or man.get("format") != FORMAT:
         raise ParjamError(f"{path}: not a parjam pack manifest")
+    if not isinstance(man.get("parameters"), dict):
+        raise _bad(path, "parameters must be a JSON object")
+    members = man.get("members", {})
+    if not isinstance(members, dict):
+        raise _bad(path, "members must be a JSON object")
+    for key, files in members.items():
+        if not key.isdigit():
+            raise _bad(path, f"member key {key!r} is not a number")
+        _check_files(path, files)
     return man
 
 
@@ -110,7 +139,7 @@ def check_parameters(out, params):
         raise ParjamError(f"{out} holds packings made with other parameters ({diff}): use "
                           f"another --out")
     for path in sorted(glob.glob(os.path.join(out, RECORDS, "member*.json"))):
-        rec = _read_json(path)
+        rec = _check_record(path, _read_json(path))
         if rec.get("parameters") != params:
             diff = "; ".join(_differences(rec.get("parameters") or {}, params))
             raise ParjamError(f"{out} holds packings made with other parameters ({diff}): use "
@@ -133,7 +162,10 @@ def _check_file(path, params, out):
         have = attrs[fkey]
         have = have.decode() if isinstance(have, bytes) else have
         want = params[pkey]
-        same = (have == want) if isinstance(want, str) else float(have) == float(want)
+        try:
+            same = (have == want) if isinstance(want, str) else float(have) == float(want)
+        except (TypeError, ValueError):  # an attribute of the wrong shape: not our file
+            same = False
         if not same:
             raise ParjamError(f"{out} holds packings made with other parameters "
                               f"({os.path.basename(path)}: {fkey} = {have!r}, now {want!r}): "
@@ -150,7 +182,7 @@ def finished_members(out, params):
     for key, files in ((man or {}).get("members") or {}).items():
         records[int(key)] = files
     for path in glob.glob(os.path.join(out, RECORDS, "member*.json")):
-        rec = _read_json(path)
+        rec = _check_record(path, _read_json(path))
         records[int(rec["member"])] = rec["files"]
     done, damaged = {}, []
     for m, files in sorted(records.items()):

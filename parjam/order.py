@@ -5,7 +5,20 @@ psi6_j = (1/n_j) sum_k exp(6 i theta_jk) over the neighbours k of particle j (ce
 NEIGHBOUR_FACTOR sigma_jk: the first shell of a triangular lattice at sigma, not the second at
 sqrt(3) sigma), theta_jk the angle of r_jk; the local order <|psi6_j|> averages its modulus over
 particles with neighbours, the global order |<psi6_j>| the complex values (near 1 only for a
-single crystal)."""
+single crystal).
+
+Small 2D boxes order differently: 16 equal disks jam (5 of 8 seeds) in one distorted lattice
+at phi_c = 0.84179, hyperstatic by +9 with z = 5, whose local hexatic order is only 0.475 (a
+triangular lattice does not fit the square box).  What gives every ordered state away is the
+contact count: an amorphous jammed packing is isostatic at phi_c and gains contacts only as
+dz ~ z0 sqrt(dphi) above it (O'Hern et al. 2003; dz / sqrt(dphi) <= 3.7 in all 24 states of
+6 bidisperse 2D members, N = 256, dphi = 1e-4 .. 1e-1, and 3.2 at N = 128, dphi = 1e-3:
+docs/reliability.md), while a crystal is hyperstatic already at phi_c.  :func:`ordered_by_contacts` flags a 2D state whose excess exceeds
+EXCESS_MIN contacts and whose dz exceeds DZ_FACTOR sqrt(dphi) + DZ_FINITE / N' (twice the
+largest measured amorphous z0, plus a finite-size allowance of a few contacts).  It flags the
+N = 16 state above and all 10 monodisperse N = 64 members at dphi = 1e-4 (hyperstatic by
+7 - 22), none of the bidisperse ones.
+"""
 
 import numpy as np
 
@@ -38,3 +51,42 @@ def hexatic_order(pack):
 
 def crystallised(local_order):
     return bool(np.isfinite(local_order) and local_order > CRYSTAL_THRESHOLD)
+
+
+EXCESS_MIN = 4        # contacts above isostatic that can be a finite-size accident
+DZ_FACTOR = 8.0       # > 2 x the largest amorphous dz / sqrt(dphi) measured in 2D (3.7)
+DZ_FINITE = 4.0       # dz allowance 4 / N' for an isostatic state plus a few stray contacts
+
+
+def amorphous_dz_limit(dphi, n_active):
+    """The largest dz = z - 2d an amorphous 2D packing shows at dphi = phi - phi_c (module doc)."""
+    return DZ_FACTOR * np.sqrt(max(float(dphi), 0.0)) + DZ_FINITE / max(int(n_active), 1)
+
+
+def ordered_by_contacts(net, dphi):
+    """Whether a 2D state at ``dphi`` (phi - phi_c; None: unknown, never flagged) is far more
+    hyperstatic than an amorphous packing can be: an ordered state (module doc)."""
+    if net.d != 2 or dphi is None or not np.isfinite(dphi) or net.n_active == 0:
+        return False
+    return bool(net.excess >= EXCESS_MIN and net.dz > amorphous_dz_limit(dphi, net.n_active))
+
+
+def check(pack, net, dphi=None):
+    """(observables, warning or None) of a state: the hexatic order and the contact test;
+    ``crystallised`` is 1 when either finds order (the state is not an amorphous jammed solid)."""
+    local, glob = hexatic_order(pack)
+    by_contacts = ordered_by_contacts(net, dphi)
+    extra = {"hexatic_order_local": local, "hexatic_order_global": glob,
+             "ordered_by_contacts": np.int8(by_contacts),
+             "crystallised": np.int8(crystallised(local) or by_contacts)}
+    why = []
+    if crystallised(local):
+        why.append(f"local hexatic order <|psi6|> = {local:.3f} > {CRYSTAL_THRESHOLD}")
+    if by_contacts:
+        why.append(f"hyperstatic by {net.excess:+d} contacts (dz = {net.dz:.3g} > "
+                   f"{amorphous_dz_limit(dphi, net.n_active):.3g}, the most an amorphous packing "
+                   f"shows at dphi = {dphi:.3g})")
+    if not why:
+        return extra, None
+    return extra, (f"the packing crystallised ({'; '.join(why)}): not an amorphous jammed "
+                   f"solid; use --dispersity bi or poly in 2D")

@@ -1,8 +1,6 @@
 """``parjam analyze``: the contact-network summary of packing files."""
 
-import json
-
-import numpy as np
+from parjam import outputs
 
 
 def add_parser(sub):
@@ -27,16 +25,28 @@ def run(args):
         net = analyze(read_packing(path))
         if rank != 0:
             continue
-        s = net.summary()
+        s = defined(net.summary())
         if args.json:
-            print(json.dumps({"file": path, **{k: _plain(v) for k, v in s.items()}}))
+            print(outputs.json_text({"file": path, **s}))
             continue
         print(f"{path}")
         for key, val in s.items():
-            fmt = f"{val:.12g}" if isinstance(val, float) else f"{val}"
+            fmt = (UNDEFINED if val is None else f"{val:.12g}" if isinstance(val, float)
+                   else f"{val}")
             print(f"  {key:<20} {fmt}")
     return 0
 
 
-def _plain(v):
-    return v.item() if isinstance(v, np.generic) else v
+UNDEFINED = "undefined (every particle is a rattler)"
+#: quantities of the rigid network, undefined when no particle is left after rattler removal
+#: (Nc_iso = d (N' - 1) + 1 would be 1 - d, the excess d - 1, z = 0/0, max_force_rel = x/0)
+OF_THE_NETWORK = ("Nc_iso", "excess", "z", "dz", "max_force_rel")
+
+
+def defined(summary):
+    """The summary with Python numbers, and None (JSON null) for what is undefined: the
+    network's quantities when N' = 0, and any NaN or infinity."""
+    out = outputs.plain(summary)
+    if not out.get("N_active"):
+        out.update({key: None for key in OF_THE_NETWORK if key in out})
+    return out

@@ -1,6 +1,5 @@
 """``parjam dos``: ensemble-averaged D(omega), D0 and omega* over spectrum files."""
 
-import os
 import sys
 
 import numpy as np
@@ -42,6 +41,79 @@ def add_parser(sub):
     p.set_defaults(run=run)
 
 
+MAX_BINS = 1_000_000  # bins cost memory and time linearly; 1e6 is finer than any spectrum needs
+#: KPM sizes: the Jackson kernel resolves ~pi (b - a) / M of the band [a, b]; 2^16 moments
+#: resolve 5e-5 of it, finer than the level spacing of any packing parjam handles up to
+#: N ~ 10^4 and than any useful bin, and cost M/2 matrix products per probe
+MAX_MOMENTS = 65_536
+#: the stochastic trace error falls as 1/sqrt(probes x d N'): 10^4 probes give 1 % on a single
+#: mode's weight; more only multiply the time
+MAX_PROBES = 10_000
+
+
+def check_sizes(args):
+    """Every size a user can ask of dos, bounded (with the reason above), before any work."""
+    if not 1 <= args.bins <= MAX_BINS:
+        raise ParjamError(f"--bins must lie in [1, {MAX_BINS}], got {args.bins}")
+    if getattr(args, "method", "spectra") != "kpm":
+        return
+    if not 2 <= args.moments <= MAX_MOMENTS:
+        raise ParjamError(f"--moments must lie in [2, {MAX_MOMENTS}] (2^16 moments already "
+                          f"resolve 5e-5 of the spectral band), got {args.moments}")
+    if not 1 <= args.probes <= MAX_PROBES:
+        raise ParjamError(f"--probes must lie in [1, {MAX_PROBES}] (the stochastic error falls "
+                          f"only as 1/sqrt(probes)), got {args.probes}")
+
+
+def check_duplicates(paths):
+    """The same file twice (by path, link or identical content) would fake an ensemble with a
+    zero error bar."""
+    from parjam import io, outputs
+
+    digests = {}
+    for k, path in enumerate(paths):
+        for other in paths[:k]:
+            if outputs.same_file(path, other):
+                raise ParjamError(f"{path} and {other} are the same file: each input must be "
+                                  f"a different member")
+        try:
+            digest = io.sha256(path)
+        except OSError:
+            continue  # unreadable: the reader says why
+        if digest in digests:
+            raise ParjamError(f"{path} and {digests[digest]} have identical contents: each "
+                              f"input must be a different member")
+        digests[digest] = path
+
+
+def check_same_system(described):
+    """``described``: (path, d, N, packing sha256 or "") per input.  Refuse mixed dimensions, mixed
+    N and two spectra of one packing."""
+    first = described[0]
+    seen = {}
+    for path, d, n, sha in described:
+        if d != first[1]:
+            raise ParjamError(f"{path} is {d}D but {first[0]} is {first[1]}D: average one "
+                              f"dimension")
+        if n != first[2]:
+            raise ParjamError(f"{path} has N = {n} but {first[0]} has N = {first[2]}: average "
+                              f"one system size")
+        if sha and sha in seen:
+            raise ParjamError(f"{path} and {seen[sha]} are spectra of the same packing: each "
+                              f"input must be a different member")
+        seen[sha] = path
+
+
+def check_defined(paths, d0s, stars, plateau):
+    """NaN is never stored silently: D0 and omega* must be defined for every input."""
+    for path, d0, ws in zip(paths, d0s, stars):
+        if not (np.isfinite(d0) and d0 > 0 and np.isfinite(ws)):
+            where = (f"the plateau window --plateau {plateau[0]:g},{plateau[1]:g}" if plateau
+                     else "the default plateau window")
+            raise ParjamError(f"{path}: {where} holds no mode (D0 = {d0:.3g}): omega* is "
+                              f"undefined; choose a window inside the computed frequencies")
+
+
 def ensemble(specs, bins, log, omega_min, plateau):
     """Per-file D(omega) on common edges, D0 and omega*; their means and standard errors."""
     from parjam import observables
@@ -71,23 +143,26 @@ def ensemble(specs, bins, log, omega_min, plateau):
 
 
 def run(args):
-    from parjam import env, io, modes_io, observables
+    from parjam import env, io, modes_io, observables, outputs
 
     PETSc = env.petsc()
     rank = PETSc.COMM_WORLD.getRank()
-    if not 1 <= args.bins <= 1_000_000:
-        raise ParjamError(f"--bins must lie in [1, 1000000], got {args.bins}")
-    if os.path.isdir(args.out):
-        raise ParjamError(f"--out {args.out} is a directory")
+    check_sizes(args)
     plateau = parse_pair(args.plateau, "--plateau") if args.plateau else None
+    outputs.check(PETSc.COMM_WORLD, files=[("--out", args.out), ("--plot", args.plot)],
+                  inputs=args.spectra)
+    check_duplicates(args.spectra)
     if getattr(args, "method", "spectra") == "kpm":
         return run_kpm(args, plateau)
     specs = [modes_io.read_spectrum(p) for p in args.spectra]
+    check_same_system([(p, int(s["attrs"].get("dimension", 0)),
+                        int(s["attrs"].get("n_active", 0)) + int(s["attrs"].get("n_rattlers", 0)),
+                        str(s["attrs"].get("packing_sha256", ""))) for p, s in
+                       zip(args.spectra, specs)])
     res = ensemble(specs, args.bins, args.log_bins, args.omega_min, plateau)
+    check_defined(args.spectra, res["D0_each"], res["omega_star_each"], plateau)
     d0, d0_err = observables.ensemble_mean(res["D0_each"][:, None])
     ws, ws_err = observables.ensemble_mean(res["omega_star_each"][:, None])
-    if rank != 0:
-        return 0
     dos = {"omega": res["omega"], "edges": res["edges"], "density": res["density"],
            "density_error": res["density_error"], "binning": "log" if args.log_bins else "linear",
            "normalisation": "per mode: counts / ((d N' - d) * bin width), then averaged",
@@ -95,21 +170,27 @@ def run(args):
            "D0_error": float(d0_err[0]), "omega_star": float(ws[0]),
            "omega_star_error": float(ws_err[0]), "D0_each": res["D0_each"],
            "omega_star_each": res["omega_star_each"]}
-    try:
-        with io.atomic_h5(args.out) as f:
-            io.write_h5md_header(f, io.provenance(PETSc.COMM_WORLD.getSize(),
-                                                  {"command": "dos", "files": args.spectra}))
-            modes_io.write_dos(f, dos)
-    except OSError as exc:
-        raise ParjamError(f"{args.out}: cannot write ({exc})", collective=False) from None
-    print(f"{res['matrix']}: {len(specs)} spectra, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g}, "
-          f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g}", flush=True)
+    prov = io.provenance(PETSc.COMM_WORLD.getSize(), {"command": "dos", "files": args.spectra})
+    outputs.on_root(PETSc.COMM_WORLD, lambda: write(args, dos, prov, (
+        f"{res['matrix']}: {len(specs)} spectra, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g}, "
+        f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g}")))
+    return 0
+
+
+def write(args, dos, prov, line):
+    """Rank 0: the D(omega) file, the summary line and the figure (policy: parjam.outputs)."""
+    from parjam import io, modes_io, outputs
+
+    with io.atomic_h5(args.out) as f:
+        io.write_h5md_header(f, prov)
+        modes_io.write_dos(f, dos)
+    print(line, flush=True)
     if args.plot:
         from parjam.plot.spectra import ensemble_dos_figure
 
-        ensemble_dos_figure(res["omega"], res["density"], res["density_error"], args.plot,
-                            res["matrix"], ws[0])
-    return 0
+        with outputs.atomic_path(args.plot, ".png") as tmp:
+            ensemble_dos_figure(dos["omega"], dos["density"], dos["density_error"], tmp,
+                                dos["matrix"], dos["omega_star"])
 
 
 def kpm_ensemble(comm, paths, args, plateau, progress):
@@ -118,9 +199,11 @@ def kpm_ensemble(comm, paths, args, plateau, progress):
     from parjam import io, kpm, observables, spectrum
 
     bounds = parse_pair(args.kpm_bounds, "--kpm-bounds") if args.kpm_bounds else None
+    packs = [io.read_packing(path) for path in paths]  # all checked before any work
+    check_same_system([(p, k.d, k.n, "") for p, k in zip(paths, packs)])
     results = []
-    for path in paths:
-        system = spectrum.active_system(io.read_packing(path))
+    for path, pack in zip(paths, packs):
+        system = spectrum.active_system(pack)
         progress(f"{path}: N' = {system.n}, {len(system.r)} contacts")
         results.append(kpm.compute(comm, system, args.matrix, args.moments, args.probes,
                                    args.seed, args.probe_kind, bounds, progress))
@@ -141,7 +224,7 @@ def kpm_ensemble(comm, paths, args, plateau, progress):
 
 
 def run_kpm(args, plateau):
-    from parjam import env, io, modes_io, observables
+    from parjam import env, io, observables, outputs
     from parjam.progress import Progress
 
     PETSc = env.petsc()
@@ -149,11 +232,10 @@ def run_kpm(args, plateau):
     progress = Progress(comm.tompi4py(), False, "dos: ")
     results, edges, mean, err, d0s, stars = kpm_ensemble(comm, args.spectra, args, plateau,
                                                          progress)
+    check_defined(args.spectra, d0s, stars, plateau)
     d0, d0_err = observables.ensemble_mean(d0s[:, None])
     ws, ws_err = observables.ensemble_mean(stars[:, None])
-    if comm.getRank() != 0:
-        return 0
-    for path, r in zip(args.spectra, results):
+    for path, r in zip(args.spectra, results if comm.getRank() == 0 else []):
         if not r.fold_below_zero and r.weight_below_zero > 1e-3:
             print(f"parjam: warning: {path}: {r.weight_below_zero:.1%} of the modes lie below "
                   f"lambda = 0 (unstable packing or indefinite matrix): left out of D(omega)",
@@ -173,19 +255,9 @@ def run_kpm(args, plateau):
            "seconds": np.array([r.seconds for r in results]),
            "D0": float(d0[0]), "D0_error": float(d0_err[0]), "omega_star": float(ws[0]),
            "omega_star_error": float(ws_err[0]), "D0_each": d0s, "omega_star_each": stars}
-    try:
-        with io.atomic_h5(args.out) as f:
-            io.write_h5md_header(f, io.provenance(comm.getSize(),
-                                                  {"command": "dos", "files": args.spectra}))
-            modes_io.write_dos(f, dos)
-    except OSError as exc:
-        raise ParjamError(f"{args.out}: cannot write ({exc})", collective=False) from None
-    print(f"{args.matrix}: KPM ({args.moments} moments x {args.probes} probes) of "
-          f"{len(results)} packings, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g}, "
-          f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g}, {sum(r.seconds for r in results):.2f} s",
-          flush=True)
-    if args.plot:
-        from parjam.plot.spectra import ensemble_dos_figure
-
-        ensemble_dos_figure(centres, mean, err, args.plot, args.matrix, ws[0])
+    prov = io.provenance(comm.getSize(), {"command": "dos", "files": args.spectra})
+    outputs.on_root(comm, lambda: write(args, dos, prov, (
+        f"{args.matrix}: KPM ({args.moments} moments x {args.probes} probes) of "
+        f"{len(results)} packings, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g}, "
+        f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g}, {sum(r.seconds for r in results):.2f} s")))
     return 0

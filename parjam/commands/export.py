@@ -2,9 +2,6 @@
 
 import os
 
-from parjam.errors import ParjamError
-
-
 def add_parser(sub):
     p = sub.add_parser("export", help="write a packing as extended XYZ (OVITO, ASE)")
     p.add_argument("file", help="packing HDF5 file")
@@ -15,17 +12,18 @@ def add_parser(sub):
 def run(args):
     from mpi4py import MPI
 
+    from parjam import outputs
     from parjam.io import read_packing, write_extxyz
     from parjam.network import analyze
 
     out = args.out or os.path.splitext(args.file)[0] + ".xyz"
-    if os.path.isdir(out):
-        raise ParjamError(f"--out {out} is a directory")
+    outputs.check(MPI.COMM_WORLD, files=[("--out", out)], inputs=[args.file])
     pack = read_packing(args.file)
-    if MPI.COMM_WORLD.Get_rank() == 0:
-        try:
-            write_extxyz(out, pack, analyze(pack))
-        except OSError as exc:
-            raise ParjamError(f"{out}: cannot write ({exc.strerror})", collective=False) from None
+
+    def write():
+        with outputs.atomic_path(out) as tmp:
+            write_extxyz(tmp, pack, analyze(pack))
         print(out)
+
+    outputs.on_root(MPI.COMM_WORLD, write)
     return 0

@@ -42,14 +42,11 @@ def output_path(args):
 def run(args):
     from mpi4py import MPI
 
-    from parjam import importer, io
+    from parjam import importer, io, outputs
     from parjam.network import analyze
 
     out = output_path(args)
-    if os.path.isdir(out):
-        raise ParjamError(f"--out {out} is a directory")
-    if os.path.abspath(out) == os.path.abspath(args.file):
-        raise ParjamError(f"--out {out} would overwrite the input")
+    outputs.check(MPI.COMM_WORLD, files=[("--out", out)], inputs=[args.file])
     for dval in args.diameters or []:
         if not dval > 0:
             raise ParjamError(f"--diameters must be positive, got {dval}")
@@ -59,11 +56,12 @@ def run(args):
     params = {"protocol": "imported", "ladder": "none", "state": "imported",
               "dimension": pack.d, "n": pack.n, "source": meta["source"],
               "source_format": meta["source_format"], "length_scale": meta["length_scale"]}
+
+    def write():
+        io.write_packing(out, pack, net, params, io.provenance(MPI.COMM_WORLD.Get_size()))
+
+    outputs.on_root(MPI.COMM_WORLD, write)
     if MPI.COMM_WORLD.Get_rank() == 0:
-        try:
-            io.write_packing(out, pack, net, params, io.provenance(MPI.COMM_WORLD.Get_size()))
-        except OSError as exc:
-            raise ParjamError(f"{out}: cannot write ({exc.strerror})", collective=False) from None
         print(f"{out}: N = {pack.n}, d = {pack.d}, phi = {pack.phi:.6f}, "
               f"{len(set(meta['species'].tolist()))} species, lengths x {meta['length_scale']:.6g}, "
               f"N' = {net.n_active}, z = {net.z:.4f}, max|F| = {net.max_force:.2e}", flush=True)

@@ -46,6 +46,26 @@ def add_parser(sub):
     p.set_defaults(run=run)
 
 
+MAX_SAMPLES = 10_000
+MAX_K = 100_000  # as parjam modes: beyond 1e5 lowest pairs use the dense solver
+#: --kmax: the structure factors take a phase exp(i k.r) per box wavevector of the grid
+#: |m| <= kmax L / (2 pi), (2 m + 1)^d points, and particle: 1e8 of them (1.6 GB of complex
+#: numbers) is far beyond the few shells up to ~pi / sigma that the dispersion and l_T need
+MAX_PHASES = 100_000_000
+
+
+def check_kmax(kmax, pack):
+    """Bound the work of --kmax before anything is allocated (the box is known only now)."""
+    if kmax is None:
+        return
+    m = np.floor(kmax * pack.L / (2.0 * np.pi))
+    log_phases = pack.d * np.log10(2.0 * m + 1.0) + np.log10(pack.n)  # no overflow warning
+    if not log_phases <= np.log10(MAX_PHASES):
+        raise ParjamError(f"--kmax {kmax:g} spans {2 * m + 1:.3g}^{pack.d} box wavevectors x "
+                          f"{pack.n} particles (more than {MAX_PHASES:.0e} phases); the "
+                          f"structure factors need k up to a few pi / sigma: lower --kmax")
+
+
 def parse_floats(text, name, count=None):
     try:
         vals = [float(x) for x in text.split(",") if x.strip()]
@@ -63,12 +83,15 @@ def validate(args):
     bad = [w for w in what if w not in WHAT]
     if bad:
         raise ParjamError(f"--what {' '.join(bad)}: choose from {', '.join(WHAT)} or all")
-    if args.samples < 1:
-        raise ParjamError(f"--samples must be >= 1, got {args.samples}")
+    if args.k is not None and not 1 <= args.k <= MAX_K:
+        raise ParjamError(f"--k must lie in [1, {MAX_K}] (k eigenvectors of d N' numbers "
+                          f"each), got {args.k}")
+    if not 1 <= args.samples <= MAX_SAMPLES:
+        raise ParjamError(f"--samples must lie in [1, {MAX_SAMPLES}] (each cube costs a "
+                          f"factorisation; 1e4 positions per edge already give 1 % counts), "
+                          f"got {args.samples}")
     if not 0 < args.smooth < 1:
         raise ParjamError(f"--smooth must lie in (0, 1), got {args.smooth}")
-    if args.out and os.path.abspath(args.out) == os.path.abspath(args.packing):
-        raise ParjamError("--out must differ from the input packing")
     edges = parse_floats(args.edges, "--edges") if args.edges else None
     if edges and not all(0 < e <= 1 for e in edges):
         raise ParjamError(f"--edges must be fractions of L in (0, 1], got {args.edges}")
@@ -83,25 +106,26 @@ def validate(args):
 
 
 def run(args):
-    from parjam import env, io, lengths
+    from parjam import env, io, lengths, outputs
     from parjam.progress import Progress
 
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
     what, edges, plateau = validate(args)
+    outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
     progress = Progress(comm, args.quiet, "lengths: ")
     pack = io.read_packing(args.packing)
+    check_kmax(args.kmax, pack)
     res = lengths.compute(
         comm, pack, what, matrix=args.matrix, k=args.k, method=args.method, plateau=plateau,
         ells=None if edges is None else np.array(edges) * pack.L, samples=args.samples,
         seed=args.seed, k_max=args.kmax, k_fit=args.kfit, smooth=args.smooth,
         progress=progress, e0=args.e0)
-    if args.out and comm.getRank() == 0:
+    if args.out:
         prov = io.provenance(comm.getSize(), {
             "command": "lengths", "input": os.path.abspath(args.packing),
             "input_sha256": io.sha256(args.packing), "what": what})
-        lengths.write(args.out, res, prov)
-    comm.tompi4py().Barrier()
+        outputs.on_root(comm, lambda: lengths.write(args.out, res, prov))
     if comm.getRank() == 0:
         print_summary(res, args.out)
     return 0

@@ -5,14 +5,17 @@ import sys
 
 import numpy as np
 
-from parjam import env, io, modes_io, spectrum
+from parjam import env, io, modes_io, outputs, spectrum
 from parjam.commands import parse_pair
 from parjam.errors import ParjamError
 from parjam.plot import spectra as plot_spectra
 from parjam.progress import Progress
 
 EXIT_INCOMPLETE = 4  # some requested pairs did not converge to the tolerance
-MAX_BINS = 1_000_000
+MAX_BINS = 1_000_000  # bins cost memory linearly; 1e6 is finer than any spectrum needs
+#: --k: the shift-and-invert basis holds ~2k vectors of d N' numbers; beyond 1e5 pairs a window
+#: (slicing) or the dense solver is the right tool, and the file also checks k <= d N' - d
+MAX_K = 100_000
 
 
 def add_parser(sub):
@@ -62,16 +65,13 @@ def validate(args):
         raise ParjamError("--matrix lists a matrix twice")
     if args.k is not None and args.k < 1:
         raise ParjamError(f"--k must be >= 1, got {args.k}")
+    if args.k is not None and args.k > MAX_K:
+        raise ParjamError(f"--k must be <= {MAX_K} (k eigenvectors of d N' numbers each; more "
+                          f"modes: --window or dense), got {args.k}")
     args.window_pair = parse_pair(args.window, "--window") if args.window else None
     args.plateau_pair = parse_pair(args.plateau, "--plateau") if args.plateau else None
     if args.bins is not None and not 1 <= args.bins <= MAX_BINS:
         raise ParjamError(f"--bins must lie in [1, {MAX_BINS}], got {args.bins}")
-    if os.path.abspath(args.out) == os.path.abspath(args.packing) or any(
-            os.path.abspath(p) == os.path.abspath(args.packing)
-            for p in output_paths(args.out, args.matrix).values()):
-        raise ParjamError("--out must differ from the input packing")
-    if os.path.isdir(args.out):
-        raise ParjamError(f"--out {args.out} is a directory")
     if args.target is not None and not np.isfinite(args.target):
         raise ParjamError("--target must be finite")
     if args.method == "slice" and args.window is None:
@@ -91,6 +91,8 @@ def run(args):
     comm = PETSc.COMM_WORLD
     rank = comm.getRank()
     validate(args)
+    outputs.check(comm, files=[("--out", p) for p in output_paths(args.out, args.matrix).values()]
+                  + [("--plot", args.plot)], inputs=[args.packing])
     progress = Progress(comm.tompi4py(), args.quiet, "modes: ")
     pack = io.read_packing(args.packing)
     system = spectrum.active_system(pack)
@@ -105,33 +107,51 @@ def run(args):
                                 method=args.method, tol=args.tol, target=args.target,
                                 vectors=args.vectors, progress=progress)
         dos = dos_or_none(spec, system, args)
+        outputs.on_root(comm, lambda: write(paths[kind], spec, system, args.packing, dos, prov))
         if rank == 0:
-            write(paths[kind], spec, system, args.packing, dos, prov)
             print(summary_line(kind, spec, dos), flush=True)
             report_problems(kind, spec)
         written[kind] = paths[kind]
         if not spec.complete:
             code = EXIT_INCOMPLETE
-    if args.plot and rank == 0:
-        plot_spectra.spectra_figure([modes_io.read_spectrum(p) for p in written.values()],
-                                    args.plot)
+    if args.plot:
+        def draw():
+            with outputs.atomic_path(args.plot, ".png") as tmp:
+                plot_spectra.spectra_figure([modes_io.read_spectrum(p) for p in written.values()],
+                                            tmp)
+
+        outputs.on_root(comm, draw)
     return code
 
 
 def dos_or_none(spec, system, args):
     if not np.any(spec.physical):  # zero modes (floppy) are no vibrations: not in D(omega)
         return None
-    return modes_io.dos_record(spec.frequency[spec.physical], system.n_modes, args.bins, args.log_bins,
-                               args.omega_min, args.plateau_pair)
+    dos = modes_io.dos_record(spec.frequency[spec.physical], system.n_modes, args.bins,
+                              args.log_bins, args.omega_min, args.plateau_pair)
+    return flag_undefined(dos, spec.matrix)
+
+
+def flag_undefined(dos, kind):
+    """NaN is never stored silently: D0 = 0 or omega* = NaN (a plateau window without modes, or
+    a partial spectrum that never reaches D0/2) is named in /dos attrs ``undefined`` and said on
+    stderr; D0 and omega* are then stored as NaN with that flag."""
+    bad = [key for key in ("D0", "omega_star") if not (np.isfinite(dos[key]) and dos[key] > 0)]
+    dos["undefined"] = ",".join(bad)
+    if bad:
+        dos.update({key: float("nan") for key in bad})
+        w1, w2 = dos["plateau_window"]
+        print(f"parjam: warning: {kind}: {' and '.join(bad)} undefined: the plateau window "
+              f"{w1:.4g},{w2:.4g} holds no mode (stored as NaN, flagged in /dos attrs "
+              f"'undefined'); choose --plateau inside the computed frequencies",
+              file=sys.stderr, flush=True)
+    return dos
 
 
 def write(path, spec, system, packing, dos, prov):
     empty = {"omega": np.zeros(0), "edges": np.zeros(0), "density": np.zeros(0),
              "note": "no positive frequency"}
-    try:
-        modes_io.write_spectrum(path, spec, system, packing, dos or empty, prov)
-    except OSError as exc:
-        raise ParjamError(f"{path}: cannot write ({exc})", collective=False) from None
+    modes_io.write_spectrum(path, spec, system, packing, dos or empty, prov)
 
 
 def report_problems(kind, spec):

@@ -3,7 +3,6 @@ response (affine Born term minus the non-affine relaxation Xi^T D^+ Xi; see parj
 
 import os
 
-from parjam.errors import ParjamError
 
 
 def add_parser(sub):
@@ -22,24 +21,20 @@ def add_parser(sub):
 
 
 def run(args):
-    from parjam import env, io, moduli
+    from parjam import env, io, moduli, outputs
     from parjam.progress import Progress
 
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
-    if args.out and os.path.abspath(args.out) == os.path.abspath(args.packing):
-        raise ParjamError("--out must differ from the input packing")
-    if args.out and os.path.isdir(args.out):
-        raise ParjamError(f"--out {args.out} is a directory")
+    outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
     progress = Progress(comm, args.quiet, "moduli: ")
     pack = io.read_packing(args.packing)
     mod = moduli.compute(pack, comm, progress)
-    if args.out and comm.getRank() == 0:
+    if args.out:
         prov = io.provenance(comm.getSize(), {
             "command": "moduli", "input": os.path.abspath(args.packing),
             "input_sha256": io.sha256(args.packing)})
-        moduli.write(args.out, mod, prov)
-    comm.tompi4py().Barrier()
+        outputs.on_root(comm, lambda: moduli.write(args.out, mod, prov))
     if comm.getRank() == 0:
         print_summary(mod, args.out)
     return 0

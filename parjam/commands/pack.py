@@ -64,6 +64,10 @@ def add_parser(sub):
                    help="write DIR/.checkpoint/memberM.h5 at most this often (default 300; 0: "
                    "never): a killed or requeued run then resumes inside the member, not from "
                    "its random start")
+    p.add_argument("--force", action="store_true",
+                   help="run even if the memory/time estimate does not fit this machine")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the memory/time estimate and whether it fits this machine; stop")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(run=run)
 
@@ -110,6 +114,27 @@ def validate(args):
         raise ParjamError("--phic-method extrapolate needs --dphi or --pressure, not --phi")
     if args.phi_start is None:
         args.phi_start = DEFAULT_PHI_START[args.dim]
+
+
+def fits_machine(args, world):
+    """The memory/time estimate of this ensemble against the machine (parjam.resources),
+    before any work; refused unless --force.  True for --dry-run (printed, nothing to do)."""
+    from parjam import resources
+
+    states = len(args.dphi or args.pressure or [args.phi]) + (args.phi is None)
+    rounds = -(-args.members // min(args.members, world.getSize()))  # members per group
+    seconds = rounds * resources.pack_seconds(args.dim, args.n, states, args.phic_method)
+    memory = resources.pack_memory_mb(args.n)
+    if getattr(args, "dry_run", False):
+        text = resources.describe(memory, seconds, resources.ranks_on_node(world.tompi4py()))
+        if world.getRank() == 0:
+            print(f"pack of {args.members} member(s) at N = {args.n}, {states} state(s): "
+                  f"~{memory:.0f} MB per rank, ~{seconds:.0f} s on {world.getSize()} rank(s)\n"
+                  f"{text}", flush=True)
+        return True
+    resources.check(world, memory, seconds, args.force,
+                    f"pack of {args.members} member(s) at N = {args.n}")
+    return False
 
 
 def start_from_file(args):
@@ -189,7 +214,7 @@ def run(args):
 
 def _run(args):
     validate(args)
-    from parjam import env, manifest
+    from parjam import env, manifest, outputs
     from parjam.ensemble import pack_member, print_table, rows_from_files
     from parjam.progress import Progress, Relay
 
@@ -198,6 +223,9 @@ def _run(args):
     mpi = world.tompi4py()
     protocol = PackingProtocol.from_namespace(args)
     params = manifest.run_parameters(protocol)
+    if fits_machine(args, world):  # --dry-run: the estimate only
+        return 0
+    outputs.check(world, dirs=[("--out", args.out)])
     outcome = None
     if world.getRank() == 0:
         try:

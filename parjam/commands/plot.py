@@ -29,6 +29,8 @@ KINDS = {
     "scaling": (("scaling", "lengths"), True, "scripts/moduli_scaling.py (JSON)"),
 }
 
+MAX_NCUT = 100_000  # more contacts than a plane of any packing parjam handles crosses
+
 FIGURE_HELP = {
     "spectra": "D(omega), eps_perp/eps_par and participation per mode (one or more spectra)",
     "dos": "ensemble D(omega) with error bars and omega*",
@@ -148,17 +150,13 @@ def requested(args, names, where):
 
 
 def check_output(args, inputs):
-    if args.out is not None:
-        if not args.out.lower().endswith(".png"):
-            raise ParjamError(f"--out {args.out}: the name must end in .png")
-        if os.path.isdir(args.out):
-            raise ParjamError(f"--out {args.out} is a directory")
-        if os.path.abspath(args.out) in {os.path.abspath(p) for p in inputs}:
-            raise ParjamError("--out must differ from the inputs")
-    elif os.path.exists(args.img) and not os.path.isdir(args.img):
-        raise ParjamError(f"--img {args.img} is not a directory")
-    if args.json is not None and os.path.isdir(args.json):
-        raise ParjamError(f"--json {args.json} is a directory")
+    """The output policy (parjam.outputs) for --out, --img and --json, before any drawing."""
+    from parjam import outputs
+
+    if args.out is not None and not args.out.lower().endswith(".png"):
+        raise ParjamError(f"--out {args.out}: the name must end in .png")
+    outputs.check(None, files=[("--out", args.out), ("--json", args.json)],
+                  dirs=[("--img", args.img)], inputs=inputs)
 
 
 def targets(args, names, prefix=""):
@@ -185,12 +183,13 @@ def run(args):
                           "python3-matplotlib)") from None
     check_output(args, args.inputs)
     kind = input_kind(args.inputs)
-    if kind == "results":
-        return plot_results(args)
-    if args.json is not None:
+    if args.json is not None and kind != "results":
         raise ParjamError("--json is for results (fits of the paper's laws); "
                           f"{args.inputs[0]} is a {kind} file")
-    return plot_file(args, kind)
+    try:
+        return plot_results(args) if kind == "results" else plot_file(args, kind)
+    except ParjamError as exc:  # a failed write (parjam.outputs) on this rank, the only one
+        raise ParjamError(str(exc)) from None  # drawing: the others learn it at the close
 
 
 def say(args, text):
@@ -248,8 +247,9 @@ def plot_file(args, kind):
     names = requested(args, list(figs), f"a {kind} file") or (
         [figs[0]] if args.out is not None else list(figs))
     plan = targets(args, names)
-    if args.ncut < 1:
-        raise ParjamError(f"--ncut must be >= 1, got {args.ncut}")
+    if not 1 <= args.ncut <= MAX_NCUT:
+        raise ParjamError(f"--ncut must lie in [1, {MAX_NCUT}] (contacts along one plane of a "
+                          f"2D packing), got {args.ncut}")
     if args.omega_max is not None and not (np.isfinite(args.omega_max) and args.omega_max > 0):
         raise ParjamError(f"--omega-max must be positive, got {args.omega_max}")
     data = load(kind, args.inputs)

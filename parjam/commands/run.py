@@ -18,7 +18,7 @@ ranks a group shares a member (distributed minimisation, distributed matrices).
 
 import os
 
-from parjam import env
+from parjam import env, outputs, resources
 from parjam.progress import Progress
 from parjam.study import plan, scene as scene_mod
 from parjam.study.runner import Runner
@@ -34,6 +34,8 @@ def add_parser(sub):
     p.add_argument("--dry-run", action="store_true",
                    help="print the plan (stages, sizes, solver per stage, estimates) and stop")
     p.add_argument("--out", help="output directory (default results/<scene name>)")
+    p.add_argument("--force", action="store_true",
+                   help="run even if the memory/time estimate does not fit this machine")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(run=run)
 
@@ -42,11 +44,16 @@ def run(args):
     scene = scene_mod.load(args.scene)
     stages = plan.plan(scene)
     world = env.petsc().COMM_WORLD
+    need = plan.machine_need(scene, stages, world.getSize(),
+                             resources.ranks_on_node(world.tompi4py()))
     if args.dry_run:
+        text = resources.describe(*need)
         if world.getRank() == 0:
-            print(plan.describe(scene, stages), flush=True)
+            print(plan.describe(scene, stages) + "\n" + text, flush=True)
         return 0
     out = args.out or os.path.join("results", scene.name)
+    outputs.check(world, dirs=[("--out", out)], inputs=[args.scene])
+    resources.check(world, need[0], need[1], args.force, f"scene {scene.name!r}")
     progress = Progress(world.tompi4py(), args.quiet, "run: ")
     runner = Runner(scene, stages, out, world, progress)
     code = runner.run()

@@ -50,10 +50,6 @@ def validate(args):
     if not args.cut and args.subdivide is None:
         raise ParjamError("no cut given: use --cut AXIS=FRACTION (e.g. --cut x=0.5) and/or "
                           "--subdivide M")
-    if os.path.abspath(args.out) == os.path.abspath(args.packing):
-        raise ParjamError("--out must differ from the input packing")
-    if os.path.isdir(args.out):
-        raise ParjamError(f"--out {args.out} is a directory")
 
 
 def planes_from(args, d):
@@ -63,22 +59,6 @@ def planes_from(args, d):
     if args.subdivide is not None:
         planes += sm.subdivision_planes(args.subdivide, d)
     return list(dict.fromkeys(planes))  # unique, in the order given
-
-
-def check_output_dir(comm, path):
-    """Rank 0 makes sure the output directory exists and is writable; every rank agrees."""
-    problem = None
-    if comm.getRank() == 0:
-        directory = os.path.dirname(os.path.abspath(path))
-        try:
-            os.makedirs(directory, exist_ok=True)
-            if not os.access(directory, os.W_OK):
-                problem = f"cannot write to {directory}"
-        except OSError as exc:
-            problem = f"cannot create output directory {directory}: {exc.strerror}"
-    problem = comm.tompi4py().bcast(problem, root=0)
-    if problem:
-        raise ParjamError(problem)
 
 
 def peak_rss_mb(comm):
@@ -93,13 +73,13 @@ def peak_rss_mb(comm):
 
 def run(args):
     validate(args)
-    from parjam import env, io, softmodes as sm
+    from parjam import env, io, outputs, softmodes as sm
     from parjam.progress import Progress
 
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
     progress = Progress(comm, args.quiet, "softmodes: ")
-    check_output_dir(comm, args.out)
+    outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
     pack = io.read_packing(args.packing)
     cs = sm.prepare(pack, planes_from(args, pack.d), args.allow_hyperstatic)
     progress(f"N' = {cs.n} non-rattlers, Nc = {len(cs.contacts)} ({cs.excess:+d} from "
@@ -112,10 +92,25 @@ def run(args):
         "planes": [p.label for p in cs.planes], "e0": args.e0, "bins": args.bins,
         "basis": args.basis,
         "allow_hyperstatic": bool(args.allow_hyperstatic)})
-    sm.write(comm, args.out, res, args.vectors, prov)
+    write(comm, args.out, res, args.vectors, prov)
     if comm.getRank() == 0:
         print_summary(res, args.out)
     return 0
+
+
+def write(comm, path, res, vectors, prov):
+    """sm.write gathers the basis collectively and writes on rank 0; a failed write there is
+    then told to every rank (one line everywhere, no abort)."""
+    from parjam import softmodes as sm
+
+    message = None
+    try:
+        sm.write(comm, path, res, vectors, prov)
+    except ParjamError as exc:
+        message = str(exc)
+    message = comm.tompi4py().bcast(message, root=0)
+    if message:
+        raise ParjamError(message)
 
 
 def print_summary(res, out):

@@ -2,7 +2,6 @@
 (parjam.commands.plot) draws them from result files."""
 
 import contextlib
-import os
 
 
 DPI = 150  # every PNG: labels and legends (>= 8 pt) readable at the size they are drawn
@@ -24,17 +23,13 @@ def pyplot():
 def atomic_png(path):
     """A temporary name (``.NAME.tmpPID.png`` in the same directory) to draw a PNG to, renamed
     to ``path`` when the block succeeds and removed when it fails: no partial image is ever
-    left at ``path``.  Figures left open by a failed drawing are closed."""
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp{os.getpid()}.png")
+    left at ``path`` (parjam.outputs: the output policy; a full disk is one line).  Figures
+    left open by a failed drawing are closed."""
+    from parjam import outputs
+
     try:
-        yield tmp
-        os.replace(tmp, path)
+        with outputs.atomic_path(path, ".png", make_dirs=True) as tmp:
+            yield tmp
     except BaseException:
         pyplot().close("all")
         raise
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)

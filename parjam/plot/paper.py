@@ -12,7 +12,6 @@ Why one file of ~530 lines: every figure is a small function next to the laws it
 """
 
 import glob
-import json
 import os
 from dataclasses import dataclass
 from typing import Callable
@@ -506,17 +505,11 @@ def sizes(groups, fits):
 
 
 def write_json(path, fits):
-    """The fits as JSON (indent 1), written through a temporary name."""
-    path = os.path.abspath(path)
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    tmp = os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.tmp{os.getpid()}")
-    try:
-        with open(tmp, "w") as fh:
-            json.dump(fits, fh, indent=1)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    """The fits as JSON (indent 1), written atomically (parjam.outputs); an undefined value
+    (NaN, inf) is null, so that the file is valid JSON."""
+    from parjam import outputs
+
+    outputs.write_bytes(path, outputs.json_text(fits, indent=1).encode(), make_dirs=True)
 
 
 def reproduce(results, img, json_path=None, names=None):

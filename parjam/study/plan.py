@@ -195,6 +195,15 @@ def plan(scene):
     return stages
 
 
+def machine_need(scene, stages, ranks, ranks_on_node):
+    """(largest memory per rank in MB, wall seconds, ranks on this node) of a plan: the stages
+    run one after another, their members spread over the ranks (checked against the machine by
+    parjam.resources)."""
+    spread = max(min(scene.members, ranks), 1)
+    memory = max((st.memory_mb for st in stages), default=0.0)
+    return memory, sum(st.seconds for st in stages) / spread, ranks_on_node
+
+
 def describe(scene, stages):
     """The --dry-run text: stages, sizes, solver per stage, estimated memory and time."""
     lines = [f"scene {scene.name!r}: {len(scene.systems)} system(s), {scene.members} member(s), "

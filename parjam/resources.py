@@ -1,0 +1,159 @@
+"""Will a plan fit this machine?  Memory and time estimates of ``pack`` and ``run`` checked
+before the work starts (docs/reliability.md, "Sizes and the machine check").
+
+- memory: the largest estimate per rank times the ranks on this node, against what the node
+  can still give (MemAvailable of /proc/meminfo, and the cgroup v2/v1 limit minus its usage
+  when one is set: batch systems confine jobs that way);
+- time: the estimate in wall-clock seconds against the batch job's remaining time
+  (``SLURM_JOB_END_TIME``), else ``PARJAM_TIME_LIMIT`` (seconds), else MAX_DAYS days: no batch
+  system grants more, and a longer plan is a typing error (N = 5e7 instead of 5e4) far more
+  often than an intent.
+
+A plan that does not fit is refused with the reason (``--force`` runs it anyway); ``run
+--dry-run`` prints the same verdict.  The estimates are deliberately rough (factor 2): they
+catch plans that are off by orders of magnitude, not a plan 10 % over.
+"""
+
+import os
+import time
+
+from parjam.errors import ParjamError
+
+MAX_DAYS = 30.0
+#: pack: peak resident memory of one process (MB) = BASE + PER_PARTICLE * N, from the measured
+#: 1.15 GB of a 3D N = 10^5 ladder (docs/scaling.md, session 8) and ~150 MB for the interpreter
+#: with PETSc, h5py and numpy loaded; the positions, neighbour lists, Hessian and checkpoints of
+#: a member are not divided over the ranks that share it (conservative)
+PACK_BASE_MB = 150.0
+PACK_PER_PARTICLE_MB = 0.0105
+
+
+def pack_memory_mb(n):
+    """Estimated peak memory of one pack process for a member of N particles (MB)."""
+    return PACK_BASE_MB + PACK_PER_PARTICLE_MB * float(n)
+
+
+def pack_seconds(d, n, states, phic_method="bisect"):
+    """Estimated one-core seconds of one member: the model of parjam.scene (measured: 3D
+    N = 512 full ladder 10-25 s, 2D N = 1024 ~80 s; extrapolate 0.4x)."""
+    per = 0.04 * float(n) ** 1.1 * (3.0 if d == 2 else 1.0) * (1 + 0.15 * max(states, 1))
+    return per * (0.4 if phic_method == "extrapolate" else 1.0)
+
+
+def _read_int(path):
+    try:
+        with open(path) as fh:
+            text = fh.read().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def available_memory_mb():
+    """What this node can still give (MB), or None if unknown."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    avail = int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    for limit_file, usage_file in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                                    "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        limit, usage = _read_int(limit_file), _read_int(usage_file)
+        if limit is not None and limit < 1 << 60:
+            left = (limit - (usage or 0)) / 2**20
+            avail = left if avail is None else min(avail, left)
+    override = os.environ.get("PARJAM_MEMORY_MB")  # tests and users who know better
+    if override:
+        try:
+            avail = float(override)
+        except ValueError:
+            raise ParjamError(f"PARJAM_MEMORY_MB={override!r} is not a number") from None
+    return avail
+
+
+def time_limit_seconds(now=None):
+    """(seconds, where from) of the time the plan may take."""
+    now = time.time() if now is None else now
+    end = os.environ.get("SLURM_JOB_END_TIME")
+    if end and end.isdigit() and int(end) > 0:
+        return max(int(end) - now, 0.0), "the batch job's remaining time (SLURM_JOB_END_TIME)"
+    text = os.environ.get("PARJAM_TIME_LIMIT")
+    if text:
+        try:
+            return float(text), "PARJAM_TIME_LIMIT"
+        except ValueError:
+            raise ParjamError(f"PARJAM_TIME_LIMIT={text!r} is not a number of seconds") from None
+    return MAX_DAYS * 86400.0, "parjam's sanity limit"
+
+
+def ranks_on_node(mpi):
+    """How many ranks of ``mpi`` share this node (collective)."""
+    from mpi4py import MPI
+
+    if mpi.Get_size() == 1:
+        return 1
+    local = mpi.Split_type(MPI.COMM_TYPE_SHARED)
+    try:
+        return local.Get_size()
+    finally:
+        local.Free()
+
+
+def _human(seconds):
+    for unit, size in (("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if seconds >= size:
+            return f"{seconds / size:.3g} {unit}"
+    return f"{seconds:.3g} s"
+
+
+def verdict(memory_mb, wall_seconds, node_ranks, available_mb=None, limit=None):
+    """Reasons why a plan needing ``memory_mb`` per rank (``node_ranks`` of them on this node)
+    and ``wall_seconds`` does not fit; empty if it fits."""
+    reasons = []
+    if available_mb is not None and memory_mb * node_ranks > available_mb:
+        reasons.append(f"needs ~{memory_mb * node_ranks / 1024:.3g} GB on this node "
+                       f"({memory_mb / 1024:.3g} GB per rank x {node_ranks} rank(s)), "
+                       f"{available_mb / 1024:.3g} GB available")
+    if limit is not None and wall_seconds > limit[0]:
+        reasons.append(f"would take ~{_human(wall_seconds)}, more than {limit[1]} "
+                       f"({_human(limit[0])})")
+    return reasons
+
+
+def describe(memory_mb, wall_seconds, node_ranks):
+    """The machine check as text (for --dry-run): 'fits' or why not."""
+    reasons = verdict(memory_mb, wall_seconds, node_ranks, available_memory_mb(),
+                      time_limit_seconds())
+    if reasons:
+        return "machine check: DOES NOT FIT: " + "; ".join(reasons) + \
+            " (a real run refuses unless --force)"
+    avail = available_memory_mb()
+    return (f"machine check: fits (~{memory_mb * node_ranks / 1024:.3g} GB on this node of "
+            f"{'?' if avail is None else f'{avail / 1024:.3g}'} GB available, "
+            f"~{_human(wall_seconds)})")
+
+
+def check(comm, memory_mb, wall_seconds, force, what):
+    """Refuse (one line, every rank) a plan that does not fit, unless ``force``; rank 0 of
+    ``comm`` decides, the ranks on its node count."""
+    mpi = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
+    node = ranks_on_node(mpi)
+    reasons, error = None, None
+    if mpi.Get_rank() == 0:
+        try:
+            reasons = verdict(memory_mb, wall_seconds, node, available_memory_mb(),
+                              time_limit_seconds())
+        except ParjamError as exc:  # a bad PARJAM_* setting: every rank must hear it
+            error = str(exc)
+    if mpi.Get_size() > 1:
+        reasons, error = mpi.bcast((reasons, error), root=0)
+    if error:
+        raise ParjamError(error)
+    if reasons and not force:
+        raise ParjamError(f"{what} does not fit this machine: {'; '.join(reasons)}; use --force "
+                          f"to run it anyway")
+    return reasons
