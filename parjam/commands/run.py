@@ -124,6 +124,9 @@ def network_record(pack):
     COUNTERS["network"] += 1
     rec = dict(analyze(pack).summary())
     rec["phi_c"] = float(pack.meta.get("phi_c", np.nan))
+    # 1 for a stable minimum, 0 for a state the packing protocol could not make one (flagged,
+    # kept: parjam.packing.Jammer.stabilise); NaN for files written before the check existed
+    rec["stable"] = float(pack.meta.get("stable", np.nan))
     # dz measured from the isostatic count, 2 (Nc - Nc_iso) / N': z - 2d without its finite-size
     # offset -2d/N' (z = 2d - 2d/N' + 2/N' at isostaticity in a periodic box)
     rec["dz_iso"] = 2.0 * rec["excess"] / rec["N_active"] if rec["N_active"] else np.nan
@@ -478,7 +481,7 @@ def _lor():
 # --------------------------------------------------------------------------- ensemble summary
 
 SCALARS = {"network": ("phi", "phi_c", "z", "dz", "dz_iso", "pressure", "N_active", "excess",
-                       "energy_per_particle", "max_force"),
+                       "energy_per_particle", "max_force", "stable"),
            "spectrum": ("D0", "omega_star", "omega_min", "n_negative"),
            "moduli": ("B", "G", "G_min", "B_affine", "G_affine"),
            "softmodes": ("c", "c_nontrivial", "q", "q_prime_over_q", "omega_L2", "omega_t2",
@@ -600,6 +603,8 @@ def summary_table(path):
         for q, name in (("dz_iso", "dz"), ("pressure", "p")):
             if q in net:
                 parts.append(f"{name} {np.nanmean(net[q]):.4g}")
+        if "stable" in net and np.any(net["stable"] == 0):
+            parts.append(f"UNSTABLE {int(np.sum(net['stable'] == 0))} member(s)")
         for kind, val in sorted(s[label].get("spectrum", {}).items()):
             if "omega_star" in val:
                 parts.append(f"omega*({kind}) {np.nanmean(val['omega_star']):.4g}")
