@@ -122,8 +122,8 @@ def quality_checks(pack, net, label):
     rel = net.summary()["max_force_rel"]
     if rel > REL_FORCE_WARN:
         _warn(f"{label}: force balance only {rel:.1e} of the mean contact force "
-              f"(max|F| = {net.max_force:.1e}): contact forces this small (alpha > 2 near phi_c) "
-              f"approach round-off; lower --ftol if max|F| is above ~1e-16")
+              f"(max|F| = {net.max_force:.1e}, mean contact force {net.mean_force:.1e}): the "
+              f"contact forces approach the round-off of the forces")
     return extra
 
 

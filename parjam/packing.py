@@ -241,7 +241,7 @@ class Jammer:
             net = analyze(self.pack)
             tol = self.balance_tol(net)
             if res.ok and net.max_force > tol:
-                res = self.relax(None, e_stop, ftol=tol)
+                res = self.polish(res, tol)
                 net = analyze(self.pack)
             cur = first = stability.check(self.comm, self.pack, net)
             lowest, escapes = np.nan, 0
@@ -256,7 +256,9 @@ class Jammer:
                 for pos in candidates[:MAX_ESCAPES - escapes]:
                     self.pack.pos = pos
                     self.ff.set_positions(pos)
-                    res = self.relax(None, e_stop, ftol=self.balance_tol(net))
+                    res = self.relax(None, e_stop)
+                    if res.ok:
+                        res = self.polish(res, self.balance_tol(analyze(self.pack)))
                     escapes += 1
                     if res.status == "unjammed":
                         break
@@ -281,10 +283,27 @@ class Jammer:
 
         res = self.relax(phi, e_stop)
         if res.ok:
-            tol = self.balance_tol(analyze(self.pack))
-            if res.fmax > tol:
-                res = self.relax(None, e_stop, ftol=tol)
+            res = self.polish(res, self.balance_tol(analyze(self.pack)))
         return res
+
+    def polish(self, res, tol):
+        """Newton steps (parjam.minimize.newton) from a converged minimum towards max|F| <= tol;
+        bounded: Newton stops at the round-off floor of the forces, or at once where the
+        Hessian is indefinite (a saddle, which ``stabilise`` then handles).  Deterministic in
+        the positions, so a run resumed from a checkpoint repeats it exactly."""
+        if not res.ok or res.fmax <= tol:
+            return res
+        before = self.ff.x.copy()
+        nres = minimize.newton(self.ff, tol)
+        self.total_newton += nres.newton_steps
+        if not nres.fmax < res.fmax:  # no progress: keep the minimum as it was
+            before.copy(self.ff.x)
+            before.destroy()
+            return res
+        before.destroy()
+        self.pack.pos = np.array(self.ff.gather())
+        return minimize.MinResult("converged", nres.energy, nres.fmax, res.fire_steps,
+                                  res.newton_steps + nres.newton_steps)
 
     def balance_tol(self, net):
         """Force tolerance of a returned state: --ftol, or REL_BALANCE of the mean contact force
@@ -512,7 +531,8 @@ class Jammer:
 
 def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=1.4, alpha=2.0,
                 comm=None, phi_start=None, settings=None):
-    """Packings of one configuration at phi_c + dphi for each dphi (ascending), and phi_c.
+    """Packings of one configuration at phi_c + dphi for each dphi (ascending), and phi_c
+    (bisection, then ``refine_phi_c`` down to the smallest dphi).
 
     The same (seed, member) gives the same configuration as ``parjam pack``.  ``comm`` defaults
     to COMM_SELF, so every rank builds the same packing (handy in tests and scripts).
@@ -528,7 +548,7 @@ def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=1.4, alpha
     jam = Jammer(comm, pack, settings)
     try:
         phic = jam.find_phi_c()
-        phi_c = phic.info["phi_c"]
+        phi_c = jam.refine_phi_c(min(dphis) if len(dphis) else 1e-6)["phi_c"]
         states = jam.ladder(phi_c, list(dphis)) if len(dphis) else []
     finally:
         jam.destroy()
