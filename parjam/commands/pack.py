@@ -130,8 +130,8 @@ def check_tolerances(ftol, energy_window, alpha, d):
     force = delta ** (alpha - 1.0)
     # the stiffest contacts met on the way: at E/N = LOW, or at the overlaps ~0.05 of the
     # random start's first minimum (alpha > 2 stiffens with the overlap)
-    floor = 1e-16 * (alpha - 1.0) * max(delta, 0.05) ** (alpha - 2.0) if alpha > 2 else \
-        1e-16 * (alpha - 1.0) * delta ** (alpha - 2.0)
+    # (alpha < 2 softens with the overlap: its forces' round-off is relative, not checked)
+    floor = 1e-16 * (alpha - 1.0) * max(delta, 0.05) ** (alpha - 2.0) if alpha >= 2 else 0.0
     if delta < OVERLAP_MIN:
         raise ParjamError(f"--energy-window LOW = {lo:g} means overlaps ~{delta:.1e}, within "
                           f"round-off of 1 - r/sigma (needs >= {OVERLAP_MIN:g}): contacts "
