@@ -431,7 +431,9 @@ class Jammer:
             target = estimates[-1] + dphi
             e_stop = 1e-3 * energy * (dphi / excess) ** self.pack.alpha
             res = self.relax_balanced(target, e_stop=e_stop)
-            if res.status == "unjammed":  # the network changed on the way: back to jammed_phi
+            if res.status == "unjammed" or analyze(self.pack).n_active == 0:
+                # the network changed on the way (or only rattlers keep a few overlaps, forces
+                # below --ftol: alpha > 2): back to jammed_phi, smaller steps
                 res = self.relax_balanced(jammed_phi)
                 ratio = max(2.0, ratio / 3.0)
             if not res.ok:

@@ -96,7 +96,7 @@ def test_saddle_detected_and_relaxed(ladder, world):
     cur = stability.check(world, saddle, net)
     assert not cur.stable
     assert cur.n_negative == _dense_negatives(saddle, cur.shift) >= 1  # MUMPS inertia vs LAPACK
-    jam = Jammer(world, saddle)
+    jam = Jammer(PETSc.COMM_SELF, saddle)  # (a shared FIRE run costs minutes in the MPI pass)
     try:
         res, info = jam.stabilise(MinResult("converged", 0.0, 0.0))
     finally:
@@ -114,7 +114,7 @@ def test_unstabilisable_state_is_flagged_not_dropped(ladder, world, monkeypatch)
     d, (phi_c, packs) = ladder
     saddle = saddle_from(packs[1])
     monkeypatch.setattr(packing, "MAX_ESCAPES", 0)
-    jam = Jammer(world, saddle)
+    jam = Jammer(world, saddle)  # no minimisation: the checks only, on every rank
     try:
         st = jam.stable_state(MinResult("converged", 0.0, 0.0), "saddle")
     finally:
