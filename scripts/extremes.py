@@ -165,8 +165,8 @@ def census_files(paths):
             state = state.decode() if isinstance(state, bytes) else str(state)
             rows.setdefault(state, []).append({k: o[k][()] for k in (
                 "excess", "stable", "negative_curvatures_found", "excess_found", "escapes",
-                "max_force_rel") if k in o} | {"member": int(par["member"]),
-                                              "seconds": float(par["seconds"])})
+                "max_force_rel", "pressure", "N_active") if k in o} | {
+                    "member": int(par["member"]), "seconds": float(par["seconds"])})
     print("| state | members | negative curvature found | Nc < Nc_iso found | unstable after "
           "| Nc - Nc_iso after (min..max) | escapes (total) |")
     print("|---|---|---|---|---|---|---|")
@@ -176,6 +176,17 @@ def census_files(paths):
               f"{sum(s['excess_found'] < 0 for s in ss)} | {sum(not s['stable'] for s in ss)} | "
               f"{min(s['excess'] for s in ss)}..{max(s['excess'] for s in ss)} | "
               f"{sum(s['escapes'] for s in ss)} |")
+    # Eq. (22): dz = C0 p^b over dphi = 1e-5 .. 1e-1, least squares in log-log of the ensemble
+    # means, dz = 2 (Nc - Nc_iso) / N' (docs/reproduction.md conventions)
+    fit = [st for st in rows if st != "phi_c" and 1e-5 <= float(st[4:]) <= 1e-1]
+    if fit:
+        members = sorted({r["member"] for st in fit for r in rows[st]})
+        p = np.array([np.mean([r["pressure"] for r in rows[st]]) for st in fit])
+        dz = np.array([np.mean([2.0 * r["excess"] / r["N_active"] for r in rows[st]])
+                       for st in fit])
+        b, lnc = np.polyfit(np.log(p), np.log(dz), 1)
+        print(f"\nEq. (22) over {len(fit)} states, members {members} (all {len(members)}): "
+              f"dz = {np.exp(lnc):.2f} p^{b:.3f}")
 
 
 def plot(recs, img):
