@@ -391,8 +391,8 @@ class Jammer:
         if not res.ok:
             raise ParjamError(f"minimisation did not converge at phi = {self.pack.phi:.10f} "
                               f"(max|F| = {res.fmax:.2e})", collective=False)
-        found = self._refine(dphi_stop, ratio, self.settings.max_iter, tol=None)
-        return State(self.pack.copy(), None, "phi_c,est",
+        found = self._refine(dphi_stop, ratio, self.settings.max_iter, tol=None, res=res)
+        return State(self.pack.copy(), found.pop("result"), "phi_c,est",
                      {**found, "dphi_est": found["dphi_reached"],
                       "phi_c_method": "virial extrapolation from above"})
 
@@ -405,9 +405,11 @@ class Jammer:
         Their difference is the resolution of phi_c.  Returns {"phi_c", "phi_c_resolution",
         "phi_c_estimates", "dphi_reached"}; the packing is left at the last state."""
         with log_stage("pack: phi_c refinement"):
-            return self._refine(dphi_stop, ratio, max_steps, tol=0.2 * RESOLVED_FRACTION)
+            found = self._refine(dphi_stop, ratio, max_steps, tol=0.2 * RESOLVED_FRACTION)
+            found.pop("result")
+            return found
 
-    def _refine(self, dphi_stop, ratio, max_steps, tol):
+    def _refine(self, dphi_stop, ratio, max_steps, tol, res=None):
         """The loop of ``refine_phi_c``; ``tol`` None: stop at the first state within
         1.5 dphi_stop once there are two estimates (the extrapolation protocol's cost)."""
         from parjam.network import analyze
@@ -442,7 +444,7 @@ class Jammer:
             jammed_phi = self.pack.phi
         resolution = max(change, PHI_C_ROUNDOFF * self.pack.phi)
         return {"phi_c": estimates[-1], "phi_c_resolution": resolution, "iterations": it,
-                "phi_c_estimates": np.array(estimates), "dphi_reached": excess}
+                "phi_c_estimates": np.array(estimates), "dphi_reached": excess, "result": res}
 
     def _virial_excess(self, energy):
         """phi - phi_c = alpha E phi / (p V) of a jammed state with a fixed contact network."""
