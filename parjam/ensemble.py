@@ -32,7 +32,7 @@ def member_states(args, member, comm, progress, checkpoint=None):
             states = [jammer.at_phi(args.phi, f"phi{args.phi:.4f}")]
             protocol = "quench"
         else:
-            phi_c, states, search = find_phi_c(jammer, args, progress)
+            phi_c, states, search, resolution = find_phi_c(jammer, args, progress)
             if args.pressure:
                 protocol = f"{search}+pressure"
                 for p in sorted(args.pressure):
@@ -40,6 +40,7 @@ def member_states(args, member, comm, progress, checkpoint=None):
             else:
                 protocol = f"{search}+ladder"
                 states += jammer.ladder(phi_c, args.dphi, args.ladder)
+            resolution_flags(states, resolution, f"member {member} ")
         totals = {"fire_steps": jammer.total_fire, "newton_steps": jammer.total_newton,
                   "force_evaluations": jammer.ff.n_force_calls}
     finally:
@@ -47,22 +48,56 @@ def member_states(args, member, comm, progress, checkpoint=None):
     return states, protocol, totals
 
 
+def smallest_dphi(args):
+    """The smallest distance to phi_c the protocol asks for: its smallest dphi, or for target
+    pressures p ~ dphi^(alpha-1) with a prefactor of order one."""
+    if args.pressure:
+        return min(p ** (1.0 / (args.alpha - 1.0)) for p in args.pressure)
+    return min(args.dphi)
+
+
 def find_phi_c(jammer, args, progress):
-    """(phi_c, [the phi_c state to write, if any], protocol name) by the chosen search."""
+    """(phi_c, [the phi_c state to write, if any], protocol name) by the chosen search; phi_c is
+    refined from the jammed side (parjam.packing.Jammer.refine_phi_c) and its resolution is
+    recorded in every state and checked against the smallest requested dphi."""
+    stop = smallest_dphi(args)
     if args.phic_method == "extrapolate":
-        if args.pressure:  # p ~ dphi^(alpha-1) with a prefactor of order one
-            stop = min(p ** (1.0 / (args.alpha - 1.0)) for p in args.pressure)
-        else:
-            stop = min(args.dphi)
         st = jammer.find_phi_c_from_above(stop)
         phi_c = st.info["phi_c"]
-        progress(f"phi_c = {phi_c:.10f} (extrapolated from dphi = {st.info['dphi_est']:.2e}) "
-                 f"after {st.info['iterations']} minimisations")
-        return phi_c, [], "virial-extrapolation"
+        progress(f"phi_c = {phi_c:.12f} +- {st.info['phi_c_resolution']:.1e} (extrapolated "
+                 f"from dphi = {st.info['dphi_est']:.2e}) after {st.info['iterations']} "
+                 f"minimisations")
+        return phi_c, [], "virial-extrapolation", st.info["phi_c_resolution"]
     phic = jammer.find_phi_c()
-    phi_c = phic.info["phi_c"]
-    progress(f"phi_c = {phi_c:.10f} after {phic.info['iterations']} minimisations")
-    return phi_c, ([] if args.no_phic_file else [phic]), "ohern-bisection"
+    progress(f"bisection: phi = {phic.info['phi_c']:.12f} after {phic.info['iterations']} "
+             f"minimisations")
+    found = jammer.refine_phi_c(stop)
+    phi_c, resolution = found["phi_c"], found["phi_c_resolution"]
+    phic.info.update(phi_c=phi_c, phi_c_resolution=resolution,
+                     phi_c_estimates=found["phi_c_estimates"],
+                     dphi=phic.pack.phi - phi_c)
+    progress(f"phi_c = {phi_c:.12f} +- {resolution:.1e} (refined from the jammed side; the "
+             f"bisection's state lies {phic.pack.phi - phi_c:.2e} above it)")
+    return phi_c, ([] if args.no_phic_file else [phic]), "ohern-bisection", resolution
+
+
+def resolution_flags(states, resolution, label_prefix):
+    """Record the resolution of phi_c in every state and flag (file and one line on stderr)
+    each requested dphi that it does not resolve to RESOLVED_FRACTION."""
+    from parjam.packing import RESOLVED_FRACTION
+
+    for st in states:
+        st.info["phi_c_resolution"] = resolution
+        dphi = st.info.get("dphi")
+        if dphi is None or st.label == "phi_c":
+            continue
+        ok = resolution <= RESOLVED_FRACTION * dphi
+        st.info["dphi_resolved"] = int(ok)
+        if not ok:
+            _warn(f"{label_prefix}{st.label}: dphi = {dphi:.1e} is below what phi_c resolves "
+                  f"(+- {resolution:.1e}; needs dphi >= {resolution / RESOLVED_FRACTION:.1e} for "
+                  f"{RESOLVED_FRACTION:.0%}): its label is not reliable (dphi_resolved = 0 in "
+                  f"the file)")
 
 
 REL_FORCE_WARN = 1e-4  # max|F| / mean contact force above this: force balance is poor
@@ -83,9 +118,26 @@ def quality_checks(pack, net, label, dphi=None):
     rel = net.summary()["max_force_rel"]
     if rel > REL_FORCE_WARN:
         _warn(f"{label}: force balance only {rel:.1e} of the mean contact force "
-              f"(max|F| = {net.max_force:.1e}): contact forces this small (alpha > 2 near phi_c) "
-              f"approach round-off; lower --ftol if max|F| is above ~1e-16")
+              f"(max|F| = {net.max_force:.1e}, mean contact force {net.mean_force:.1e}): the "
+              f"contact forces approach the round-off of the forces")
     return extra
+
+
+STABILITY_KEYS = ("stable", "negative_curvatures", "negative_curvatures_found", "excess_found",
+                  "escapes", "curvature_shift", "lowest_curvature_found")
+
+
+def stability_observables(st, label):
+    """/observables entries of the stability check (parjam.packing.Jammer.stabilise); a state
+    that could not be made a stable minimum is flagged (stable = 0) and said on stderr."""
+    out = {k: st.info[k] for k in STABILITY_KEYS if k in st.info}
+    if "stable" in out:
+        out["stable"] = np.int8(out["stable"])
+        if not out["stable"]:
+            _warn(f"{label}: not a stable minimum after {st.info['escapes']} escape(s) from its "
+                  f"saddle ({st.info['negative_curvatures']} negative curvature(s) of the full "
+                  f"Hessian): written with stable = 0 in /observables")
+    return out
 
 
 def _warn(msg):
@@ -144,11 +196,13 @@ def pack_member(args, member, comm, progress, run_params=None):
             st.pack.meta.setdefault("species", st.pack.meta.get("species"))
             extra = quality_checks(st.pack, net, f"member {member} {st.label}",
                                    st.pack.phi - st.info.get("phi_c", np.nan))
+            extra.update(stability_observables(st, f"member {member} {st.label}"))
             io.write_packing(path, st.pack, net, params, prov, extra)
             paths.append(path)
         if comm.getRank() == 0:  # one row per state, however many ranks share the member
             rows.append({"member": member, "state": st.label, "file": path, **net.summary(),
-                         "phi_c": st.info.get("phi_c", np.nan)})
+                         "phi_c": st.info.get("phi_c", np.nan),
+                         "stable": int(st.info.get("stable", 1))})
     if comm.getRank() == 0 and run_params is not None:
         manifest.write_member_record(args.out, member, paths, run_params)
     if ck is not None:
@@ -172,6 +226,8 @@ def rows_from_files(out, member, files):
         path = os.path.join(out, name)
         with h5py.File(path, "r") as f:
             row = {key: io.observable(f, key) for key in SUMMARY_KEYS}
+            row["stable"] = int(io.observable(f, "stable")) if "stable" in f["observables"] \
+                else 1
             par = f["parameters"].attrs
             state = par["state"]
             row.update(member=member, file=path, phi_c=float(par.get("phi_c", np.nan)),
@@ -195,3 +251,14 @@ def print_table(rows):
         print(f"{r['member']:>6} {r['state']:>12} {r['phi_c']:>14.10f} {r['phi']:>14.10f} "
               f"{r['N_active']:>6} {r['excess']:>6} {r['z']:>8.4f} {r['dz']:>10.3e} "
               f"{r['pressure']:>11.4e} {r['max_force']:>9.2e} {r['max_force_rel']:>9.2e}")
+    print(stability_line(rows))
+
+
+def stability_line(rows):
+    """The ensemble's count of states that are not stable minima (flagged, not dropped)."""
+    bad = [(r["member"], r["state"]) for r in rows if not r.get("stable", 1)]
+    members = sorted({m for m, _ in bad})
+    if not bad:
+        return f"stability: all {len(rows)} states are stable minima (Nc >= Nc_iso)"
+    return (f"stability: {len(bad)} of {len(rows)} states in {len(members)} member(s) are NOT "
+            f"stable minima (flagged stable = 0): " + ", ".join(f"{m} {s}" for m, s in bad))

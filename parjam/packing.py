@@ -7,6 +7,18 @@ the volume fraction there is its phi_c.  The step in phi is chosen by bisection 
 [unjammed, overjammed], accelerated (and always kept inside the bracket) by the prediction of
 the virial relation for a jammed state, E ~ (phi - phi_c)^alpha, dE/dphi = p V / phi, which gives
 phi_c ~= phi - alpha E phi / (p V) while the contact network does not change.
+
+The energy window alone leaves phi_c off by the dphi of that state (~2.5e-8 for harmonic spheres
+at E/N ~ 1.5e-16; ~4e-7 for alpha = 2.5), which mislabels every state below a few 1e-8.  So the
+bisection's phi_c is refined from the jammed side (``refine_phi_c``): the virial relation of the
+fixed contact network is applied again to states decompressed towards phi_c, until two successive
+estimates (from states at decreasing dphi) agree; their difference is the resolution of phi_c,
+recorded with every state.  Every returned state is also checked to be a stable minimum
+(parjam.stability) and, where it is a saddle, pushed out of it along its softest direction and
+minimised again (``stabilise``).
+
+(Over 500 lines: the Jammer is one state machine over one force field and its checkpoint; the
+stability test itself and the escape searches live in parjam.stability.)
 """
 
 from dataclasses import dataclass, field
@@ -24,6 +36,18 @@ from parjam.system import Packing, sphere_volume
 
 DISPERSITIES = ("mono", "bi", "poly")
 PHI_MAX = {2: 0.99, 3: 0.9}  # the phi_c search gives up above these (nothing jams so late)
+# phi_c refinement: each step decompresses to 1/REFINE_RATIO of the estimated distance to phi_c
+REFINE_RATIO = 30.0
+# relative round-off floor of phi_c's resolution: a few ulps of phi (the box edge, the overlaps
+# 1 - r/sigma and E, p of a state all carry relative round-off ~1e-16)
+PHI_C_ROUNDOFF = 8.0 * np.finfo(np.float64).eps
+RESOLVED_FRACTION = 0.05  # a dphi is resolved when phi_c is known to 5 % of it
+MAX_ESCAPES = 6  # saddle escapes (softest direction, then minimisation) per state
+# a returned state is force-balanced to REL_BALANCE of its mean contact force (tighter than
+# --ftol near jamming: at dphi = 1e-10 contact forces are ~3e-11), but not below the round-off
+# floor FORCE_FLOOR * (mean contact stiffness) of the forces
+REL_BALANCE = 1e-5
+FORCE_FLOOR = 2e-15
 
 
 def diameters(n, dispersity="mono", ratio=DEFAULT_RATIO, rng=None):
@@ -116,7 +140,7 @@ class Jammer:
         if self.progress is not None:
             self.progress(msg)
 
-    def relax(self, phi=None, e_stop=-np.inf):
+    def relax(self, phi=None, e_stop=-np.inf, ftol=None):
         """Rescale affinely to phi (if given) and minimise; returns the MinResult.  With a
         checkpoint, a minimisation finished in an earlier run is replayed from its record and an
         interrupted one continues from its last snapshot."""
@@ -137,7 +161,8 @@ class Jammer:
         resume = self._resume(call) if ck is not None else None
         hook = ck.snapshot(call, self.ff, self.pack.L, calls_before) if ck is not None else None
         try:
-            res = minimize.minimize(self.ff, self.settings.ftol, e_stop,
+            ftol = self.settings.ftol if ftol is None else ftol
+            res = minimize.minimize(self.ff, ftol, e_stop,
                                    fire_rel=self.settings.fire_rel, progress=self._inner,
                                    snapshot=hook, resume=resume)
         except ValueError as exc:  # e.g. a box too small for the neighbour search
@@ -183,6 +208,102 @@ class Jammer:
     def state(self, res, label, **info):
         return State(self.pack.copy(), res, label, info)
 
+    def stable_state(self, res, label, e_stop=-np.inf, **info):
+        """The State of the current minimum after ``stabilise``; its info records the check."""
+        res, check = self.stabilise(res, e_stop)
+        return State(self.pack.copy(), res, label, {**info, **check})
+
+    def stabilise(self, res, e_stop=-np.inf):
+        """Make the current minimum a stable one (parjam.stability): while the full Hessian of
+        the non-rattlers has a negative curvature, or Nc < Nc_iso, move the packing out of the
+        saddle along its softest direction (``stability.escape_candidates``: to where the first
+        new contact closes, on either side, or to the lowest energy along it) and minimise
+        again; the first candidate that is stable is kept, else the search goes on from the
+        last one, at most MAX_ESCAPES minimisations.  Returns the last MinResult and the record
+        {"negative_curvatures_found", "excess_found", "escapes", "negative_curvatures",
+        "stable", "curvature_shift", "lowest_curvature_found"}; a state that stays unstable is
+        returned flagged (stable = 0), never dropped."""
+        from parjam import stability
+        from parjam.network import analyze
+
+        with log_stage("pack: stability"):
+            net = analyze(self.pack)
+            tol = self.balance_tol(net)
+            if res.ok and net.max_force > tol:
+                res = self.polish(res, tol)
+                net = analyze(self.pack)
+            cur = first = stability.check(self.comm, self.pack, net)
+            lowest, escapes = np.nan, 0
+            while not cur.stable and escapes < MAX_ESCAPES and cur.n_active > 0:
+                direction, lam = stability.softest_direction(self.comm, self.pack, cur, net)
+                lowest = lam if escapes == 0 else lowest
+                if direction is None:
+                    break
+                self._log(f"saddle: {cur.n_negative} negative curvature(s) (lowest {lam:.2e}), "
+                          f"Nc - Nc_iso = {cur.excess}: escape {escapes + 1}")
+                candidates = stability.escape_candidates(self.pack, direction)
+                for pos in candidates[:MAX_ESCAPES - escapes]:
+                    self.pack.pos = pos
+                    self.ff.set_positions(pos)
+                    res = self.relax(None, e_stop)
+                    if res.ok:
+                        res = self.polish(res, self.balance_tol(analyze(self.pack)))
+                    escapes += 1
+                    if res.status == "unjammed":
+                        break
+                    net = analyze(self.pack)
+                    cur = stability.check(self.comm, self.pack, net)
+                    if cur.stable:
+                        break
+                if res.status == "unjammed":
+                    break
+        if not cur.stable:
+            self._log(f"state still unstable after {escapes} escape(s): {cur.n_negative} "
+                      f"negative curvature(s), Nc - Nc_iso = {cur.excess}")
+        return res, {"negative_curvatures_found": first.n_negative,
+                     "excess_found": first.excess, "escapes": escapes,
+                     "negative_curvatures": cur.n_negative, "stable": int(cur.stable),
+                     "curvature_shift": cur.shift, "lowest_curvature_found": lowest}
+
+    def relax_balanced(self, phi=None, e_stop=-np.inf):
+        """``relax``, then on to ``balance_tol`` where --ftol is loose against the contact forces
+        (near jamming, and for alpha > 2 whose forces ~dphi^(alpha-1) fall below --ftol)."""
+        from parjam.network import analyze
+
+        res = self.relax(phi, e_stop)
+        if res.ok:
+            res = self.polish(res, self.balance_tol(analyze(self.pack)))
+        return res
+
+    def polish(self, res, tol):
+        """Newton steps (parjam.minimize.newton) from a converged minimum towards max|F| <= tol;
+        bounded: Newton stops at the round-off floor of the forces, or at once where the
+        Hessian is indefinite (a saddle, which ``stabilise`` then handles).  Deterministic in
+        the positions, so a run resumed from a checkpoint repeats it exactly."""
+        if not res.ok or res.fmax <= tol:
+            return res
+        before = self.ff.x.copy()
+        nres = minimize.newton(self.ff, tol)
+        self.total_newton += nres.newton_steps
+        if not nres.fmax < res.fmax:  # no progress: keep the minimum as it was
+            before.copy(self.ff.x)
+            before.destroy()
+            return res
+        before.destroy()
+        self.pack.pos = np.array(self.ff.gather())
+        return minimize.MinResult("converged", nres.energy, nres.fmax, res.fire_steps,
+                                  res.newton_steps + nres.newton_steps)
+
+    def balance_tol(self, net):
+        """Force tolerance of a returned state: --ftol, or REL_BALANCE of the mean contact force
+        where that is tighter, floored at the forces' round-off level."""
+        from parjam import potential
+
+        c = net.contacts
+        k = float(np.mean(potential.d2V(c.r, c.sigma, self.pack.alpha, self.pack.eps))) \
+            if len(c) else 1.0
+        return min(self.settings.ftol, max(REL_BALANCE * net.mean_force, FORCE_FLOOR * k))
+
     def find_phi_c(self):
         """O'Hern bisection: returns the State whose E/N lies in [e_low, e_high]."""
         with log_stage("pack: phi_c bisection"):
@@ -203,7 +324,8 @@ class Jammer:
                 raise ParjamError(f"minimisation did not converge at phi = {phi:.10f} "
                                   f"(max|F| = {res.fmax:.2e})", collective=False)
             if s.e_low <= e <= s.e_high:
-                return self.state(res, "phi_c", phi_c=phi, iterations=it)
+                return self.stable_state(res, "phi_c", phi_c=phi, phi_bisection=phi,
+                                         iterations=it)
             if e < s.e_low:
                 lo = phi
                 phi = phi + step if np.isinf(hi) else 0.5 * (lo + hi)
@@ -254,29 +376,64 @@ class Jammer:
                             collective=False)
 
     def _find_phi_c_from_above(self, dphi_stop, ratio):
-        s = self.settings
         res = self._jammed_start()
+        if not res.ok:
+            raise ParjamError(f"minimisation did not converge at phi = {self.pack.phi:.10f} "
+                              f"(max|F| = {res.fmax:.2e})", collective=False)
+        found = self._refine(dphi_stop, ratio, self.settings.max_iter, tol=None, res=res)
+        return State(self.pack.copy(), found.pop("result"), "phi_c,est",
+                     {**found, "dphi_est": found["dphi_reached"],
+                      "phi_c_method": "virial extrapolation from above"})
+
+    def refine_phi_c(self, dphi_stop, ratio=REFINE_RATIO, max_steps=10):
+        """Refine phi_c from the current jammed minimum by the virial relation of its contact
+        network, phi_c = phi - alpha E phi / (p V) (O'Hern et al. 2003; E ~ dphi^alpha,
+        p ~ dphi^(alpha-1)): decompress to phi_c,est + max(dphi_stop, dphi_est / ratio) (below
+        dphi_stop: dphi_est / ratio), re-minimise, estimate again, until the last state lies
+        within 1.5 dphi_stop of phi_c and the last two estimates agree to 1 % of dphi_stop.
+        Their difference is the resolution of phi_c.  Returns {"phi_c", "phi_c_resolution",
+        "phi_c_estimates", "dphi_reached"}; the packing is left at the last state."""
+        with log_stage("pack: phi_c refinement"):
+            found = self._refine(dphi_stop, ratio, max_steps, tol=0.2 * RESOLVED_FRACTION)
+            found.pop("result")
+            return found
+
+    def _refine(self, dphi_stop, ratio, max_steps, tol, res=None):
+        """The loop of ``refine_phi_c``; ``tol`` None: stop at the first state within
+        1.5 dphi_stop once there are two estimates (the extrapolation protocol's cost)."""
+        from parjam.network import analyze
+
+        estimates = []
         jammed_phi = self.pack.phi
-        for it in range(1, s.max_iter + 1):
+        for it in range(1, max_steps + 1):
+            energy = analyze(self.pack).energy
+            excess = self._virial_excess(energy)
+            phi = self.pack.phi
+            estimates.append(phi - excess)
+            change = abs(estimates[-1] - estimates[-2]) if len(estimates) > 1 else np.inf
+            self._log(f"phi_c refinement {it}: phi = {phi:.14f}, dphi_est = {excess:.3e}, "
+                      f"phi_c,est = {estimates[-1]:.14f} (change {change:.1e})")
+            near = excess <= 1.5 * dphi_stop
+            if near and len(estimates) > 1 and (tol is None or change <= tol * dphi_stop):
+                break
+            if it == max_steps:
+                break
+            dphi = excess / ratio if near else max(dphi_stop, excess / ratio)
+            target = estimates[-1] + dphi
+            e_stop = 1e-3 * energy * (dphi / excess) ** self.pack.alpha
+            res = self.relax_balanced(target, e_stop=e_stop)
+            if res.status == "unjammed" or analyze(self.pack).n_active == 0:
+                # the network changed on the way (or only rattlers keep a few overlaps, forces
+                # below --ftol: alpha > 2): back to jammed_phi, smaller steps
+                res = self.relax_balanced(jammed_phi)
+                ratio = max(2.0, ratio / 3.0)
             if not res.ok:
                 raise ParjamError(f"minimisation did not converge at phi = {self.pack.phi:.10f} "
                                   f"(max|F| = {res.fmax:.2e})", collective=False)
-            phi = self.pack.phi
-            excess = self._virial_excess(res.energy)
-            phi_c = phi - excess
-            self._log(f"phi_c extrapolation {it}: phi = {phi:.12f}, dphi_est = {excess:.3e}, "
-                      f"phi_c,est = {phi_c:.12f}")
-            if excess <= 1.5 * dphi_stop:
-                return self.state(res, "phi_c,est", phi_c=phi_c, dphi_est=excess, iterations=it,
-                                  phi_c_method="virial extrapolation from above")
-            target = phi_c + max(dphi_stop, excess / ratio)
-            res = self.relax(target, e_stop=s.e_low * self.pack.n * 1e-6)
-            if res.status == "unjammed":  # overshot (the network changed): back half way
-                res = self.relax(0.5 * (target + jammed_phi))
-                ratio = max(2.0, ratio / 2.0)
             jammed_phi = self.pack.phi
-        raise ParjamError(f"phi_c extrapolation did not reach dphi = {dphi_stop:g} in "
-                          f"{s.max_iter} steps", collective=False)
+        resolution = max(change, PHI_C_ROUNDOFF * self.pack.phi)
+        return {"phi_c": estimates[-1], "phi_c_resolution": resolution, "iterations": it,
+                "phi_c_estimates": np.array(estimates), "dphi_reached": excess, "result": res}
 
     def _virial_excess(self, energy):
         """phi - phi_c = alpha E phi / (p V) of a jammed state with a fixed contact network."""
@@ -297,16 +454,28 @@ class Jammer:
         target = 0.5 * (s.e_low + s.e_high) * self.pack.n
         return phi - excess + excess * (target / energy) ** (1.0 / self.pack.alpha)
 
-    def at_phi(self, phi, label, **info):
-        """Minimised state at volume fraction phi; UnjammedError if the energy vanishes."""
-        res = self.relax(phi, e_stop=self.settings.e_low * self.pack.n * 1e-6)
-        if res.status == "unjammed":
+    def at_phi(self, phi, label, e_stop=None, **info):
+        """Minimised, stable (``stabilise``) state at volume fraction phi; UnjammedError if the
+        energy falls below ``e_stop`` (default: 1e-6 of the low end of the energy window)."""
+        from parjam.network import analyze
+
+        e_stop = self.settings.e_low * self.pack.n * 1e-6 if e_stop is None else e_stop
+        res = self.relax_balanced(phi, e_stop=e_stop)
+        if res.status == "unjammed" or (res.ok and analyze(self.pack).n_active == 0):
             raise UnjammedError(f"unjammed at phi = {phi:.10f}: energy per particle reached "
                                 f"{res.energy / self.pack.n:.3e}", collective=False)
         if not res.ok:
             raise ParjamError(f"minimisation did not converge at phi = {phi:.10f} "
                               f"(max|F| = {res.fmax:.2e})", collective=False)
-        return self.state(res, label, **info)
+        return self.stable_state(res, label, e_stop, **info)
+
+    def energy_floor(self, dphi):
+        """An energy far below that of a jammed state at phi_c + dphi (overlaps ~dphi / (2 d),
+        z/2 ~ d contacts per particle), above which the state counts as jammed: the window's
+        1e-6 floor, lowered for dphi below ~1e-8 where E/N itself is below it."""
+        d, a = self.pack.d, self.pack.alpha
+        expected = self.pack.n * d * (dphi / (2.0 * d)) ** a / a
+        return min(self.settings.e_low * self.pack.n * 1e-6, 1e-4 * expected)
 
     def ladder(self, phi_c, dphis, direction="compress"):
         """States at phi_c + dphi, compressing upwards or decompressing from the largest."""
@@ -318,8 +487,9 @@ class Jammer:
         out = []
         for k, dphi in enumerate(order):
             self._log(f"dphi step {k + 1}/{len(order)}: dphi = {dphi:.1e}")
-            st = self.at_phi(phi_c + dphi, f"dphi{dphi:.1e}", dphi=dphi, phi_c=phi_c,
-                             ladder=direction)
+            st = self.at_phi(phi_c + dphi, f"dphi{dphi:.1e}", e_stop=self.energy_floor(dphi),
+                             dphi=dphi, phi_c=phi_c, ladder=direction)
+            st.info["dphi_virial"] = self._virial_excess(st.result.energy)
             out.append(st)
         return out
 
@@ -354,7 +524,8 @@ class Jammer:
 
 def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=DEFAULT_RATIO,
                 alpha=DEFAULT_ALPHA, comm=None, phi_start=None, settings=None):
-    """Packings of one configuration at phi_c + dphi for each dphi (ascending), and phi_c.
+    """Packings of one configuration at phi_c + dphi for each dphi (ascending), and phi_c
+    (bisection, then ``refine_phi_c`` down to the smallest dphi).
 
     The same (seed, member) gives the same configuration as ``parjam pack``.  ``comm`` defaults
     to COMM_SELF, so every rank builds the same packing (handy in tests and scripts).
@@ -367,7 +538,7 @@ def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=DEFAULT_RA
     jam = Jammer(comm, pack, settings)
     try:
         phic = jam.find_phi_c()
-        phi_c = phic.info["phi_c"]
+        phi_c = jam.refine_phi_c(min(dphis) if len(dphis) else 1e-6)["phi_c"]
         states = jam.ladder(phi_c, list(dphis)) if len(dphis) else []
     finally:
         jam.destroy()

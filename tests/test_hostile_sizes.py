@@ -347,9 +347,9 @@ def test_small_ordered_2d_state_is_flagged(tmp_path):
         assert "hyperstatic by +9" in err, err
         for name in ("member0000_phi_c.h5", "member0000_dphi1.0e-04.h5"):
             with h5py.File(out / name, "r") as f:
-                assert f["observables/ordered_by_contacts"][()] == 1
-                assert f["observables/crystallised"][()] == 1
-                assert f["observables/hexatic_order_local"][()] < order.CRYSTAL_THRESHOLD
+                assert pio.observable(f, "ordered_by_contacts") == 1
+                assert pio.observable(f, "crystallised") == 1
+                assert pio.observable(f, "hexatic_order_local") < order.CRYSTAL_THRESHOLD
     for n in (64, 128, 256, 512, 1024):
         for m in (0, 1):
             pack = pio.read_packing(os.path.join(DATA, f"soft_d2_N{n}_m{m}.h5"))

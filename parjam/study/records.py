@@ -12,6 +12,9 @@ def network_record(pack):
     """z, dz, p and the rest of the contact-network summary (parjam.network)."""
     rec = dict(network.analyze(pack).summary())
     rec["phi_c"] = float(pack.meta.get("phi_c", np.nan))
+    # 1 for a stable minimum, 0 for a state the packing protocol could not make one (flagged,
+    # kept: parjam.packing.Jammer.stabilise); NaN for files written before the check existed
+    rec["stable"] = float(pack.meta.get("stable", np.nan))
     return rec
 
 

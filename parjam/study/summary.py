@@ -11,7 +11,7 @@ from parjam import io, observables
 # --------------------------------------------------------------------------- ensemble summary
 
 SCALARS = {"network": ("phi", "phi_c", "z", "dz", "dz_iso", "pressure", "N_active", "excess",
-                       "energy_per_particle", "max_force"),
+                       "energy_per_particle", "max_force", "stable"),
            "spectrum": ("D0", "omega_star", "omega_min", "n_negative"),
            "moduli": ("B", "G", "G_min", "B_affine", "G_affine"),
            "softmodes": ("c", "c_nontrivial", "q", "q_prime_over_q", "omega_L2", "omega_t2",
@@ -126,6 +126,8 @@ def summary_table(path):
         for q, name in (("dz_iso", "dz_iso"), ("pressure", "p")):
             if q in net:
                 parts.append(f"{name} {np.nanmean(net[q]):.4g}")
+        if "stable" in net and np.any(net["stable"] == 0):
+            parts.append(f"UNSTABLE {int(np.sum(net['stable'] == 0))} member(s)")
         for kind, val in sorted(s[label].get("spectrum", {}).items()):
             if "omega_star" in val:
                 parts.append(f"omega*({kind}) {np.nanmean(val['omega_star']):.4g}")
