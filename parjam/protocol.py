@@ -8,6 +8,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
+from parjam.errors import ParjamError
+
 DEFAULT_PHI_START = {2: 0.86, 3: 0.66}  # random starts above phi_c (2D bidisperse, 3D mono)
 DEFAULT_DISPERSITY = {2: "bi", 3: "mono"}  # of scenes and make_jammed (mono 2D crystallises)
 DEFAULT_ALPHA = 2.0  # harmonic contacts
@@ -17,6 +19,51 @@ DEFAULT_ENERGY_WINDOW = (1e-16, 2e-16)  # E/N window defining phi_c (O'Hern et a
 DEFAULT_DPHI = (1e-6, 1e-4, 1e-2)  # the ladder of parjam pack without --dphi/--pressure/--phi
 LADDERS = ("compress", "decompress")
 PHIC_METHODS = ("bisect", "extrapolate")
+
+
+OVERLAP_MIN = 1e-12  # overlaps below ~1e4 ulps of 1 - r/sigma cannot be told from gaps
+OVERLAP_MAX = 1e-3  # a "phi_c" state with larger overlaps is not near jamming
+WINDOW_MIN_RATIO = 1.05  # HIGH/LOW: a narrower window is hit only by luck
+
+
+def check_tolerances(ftol, energy_window, alpha, d, names=("--ftol", "--energy-window")):
+    """Refuse an --energy-window or --ftol that cannot define a jammed state, with the reason.
+
+    A state with E/N = LOW has overlaps delta ~ (alpha LOW / d)^(1/alpha) (d contacts per
+    particle, V = delta^alpha / alpha), contact forces ~ delta^(alpha-1) and stiffnesses
+    (alpha-1) delta^(alpha-2) (eps, sigma units).  Its contacts are defined only if delta is far
+    above the round-off of 1 - r/sigma, and its force balance only if --ftol is small against
+    its contact forces yet above the forces' round-off (~1e-16 x stiffness).  ``names`` are
+    the option (or scene key) names the messages use."""
+    lo, hi = energy_window
+    delta = (alpha * lo / d) ** (1.0 / alpha)
+    delta_hi = (alpha * hi / d) ** (1.0 / alpha)
+    force = delta ** (alpha - 1.0)
+    # the stiffest contacts met on the way: at E/N = LOW, or at the overlaps ~0.05 of the
+    # random start's first minimum (alpha > 2 stiffens with the overlap)
+    # (alpha < 2 softens with the overlap: its forces' round-off is relative, not checked)
+    floor = 1e-16 * (alpha - 1.0) * max(delta, 0.05) ** (alpha - 2.0) if alpha >= 2 else 0.0
+    if delta < OVERLAP_MIN:
+        raise ParjamError(f"{names[1]} LOW = {lo:g} means overlaps ~{delta:.1e}, within "
+                          f"round-off of 1 - r/sigma (needs >= {OVERLAP_MIN:g}): contacts "
+                          f"cannot be told from gaps there; use LOW >= "
+                          f"{d * OVERLAP_MIN ** alpha / alpha:.1e}")
+    if delta_hi > OVERLAP_MAX:
+        raise ParjamError(f"{names[1]} HIGH = {hi:g} means overlaps ~{delta_hi:.1e}: that "
+                          f"state is not near jamming; use HIGH <= "
+                          f"{d * OVERLAP_MAX ** alpha / alpha:.1e}")
+    if hi < WINDOW_MIN_RATIO * lo:
+        raise ParjamError(f"{names[1]} {lo:g} {hi:g} is too narrow (HIGH/LOW < "
+                          f"{WINDOW_MIN_RATIO}): the bisection would land in it only by luck")
+    if ftol > 1e-2 * force:
+        raise ParjamError(f"{names[0]} {ftol:g} is not small against the contact forces "
+                          f"(~{force:.1e}) "
+                          f"of a state with E/N = {lo:g}: force balance cannot define its "
+                          f"contacts; use {names[0]} <= {1e-2 * force:.1e} or a higher {names[1]}")
+    if ftol < floor:
+        raise ParjamError(f"{names[0]} {ftol:g} is below the round-off level of the forces "
+                          f"(~{floor:.1e} = 1e-16 x the largest contact stiffness): no "
+                          f"minimisation reaches it")
 
 
 @dataclass(frozen=True)

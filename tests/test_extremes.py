@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from parjam import env, hessian, io, network, packing, stability
-from parjam.commands.pack import check_tolerances
 from parjam.errors import ParjamError
 from parjam.minimize import MinResult
 from parjam.packing import Jammer, make_jammed
+from parjam.protocol import check_tolerances
 from parjam.system import wrap
 
 PETSc = env.petsc()

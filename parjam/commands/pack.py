@@ -11,7 +11,7 @@ from parjam.errors import ParjamError
 from parjam.packing import DISPERSITIES
 from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DPHI, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
                              DEFAULT_PHI_START, DEFAULT_RATIO, LADDERS, PHIC_METHODS,
-                             PackingProtocol)
+                             PackingProtocol, check_tolerances)
 from parjam.ranks import member_groups
 
 MAX_MEMBERS = 1_000_000
@@ -121,49 +121,6 @@ def validate(args):
         raise ParjamError("--phic-method extrapolate needs --dphi or --pressure, not --phi")
     if args.phi_start is None:
         args.phi_start = DEFAULT_PHI_START[args.dim]
-
-
-OVERLAP_MIN = 1e-12  # overlaps below ~1e4 ulps of 1 - r/sigma cannot be told from gaps
-OVERLAP_MAX = 1e-3  # a "phi_c" state with larger overlaps is not near jamming
-WINDOW_MIN_RATIO = 1.05  # HIGH/LOW: a narrower window is hit only by luck
-
-
-def check_tolerances(ftol, energy_window, alpha, d):
-    """Refuse an --energy-window or --ftol that cannot define a jammed state, with the reason.
-
-    A state with E/N = LOW has overlaps delta ~ (alpha LOW / d)^(1/alpha) (d contacts per
-    particle, V = delta^alpha / alpha), contact forces ~ delta^(alpha-1) and stiffnesses
-    (alpha-1) delta^(alpha-2) (eps, sigma units).  Its contacts are defined only if delta is far
-    above the round-off of 1 - r/sigma, and its force balance only if --ftol is small against
-    its contact forces yet above the forces' round-off (~1e-16 x stiffness)."""
-    lo, hi = energy_window
-    delta = (alpha * lo / d) ** (1.0 / alpha)
-    delta_hi = (alpha * hi / d) ** (1.0 / alpha)
-    force = delta ** (alpha - 1.0)
-    # the stiffest contacts met on the way: at E/N = LOW, or at the overlaps ~0.05 of the
-    # random start's first minimum (alpha > 2 stiffens with the overlap)
-    # (alpha < 2 softens with the overlap: its forces' round-off is relative, not checked)
-    floor = 1e-16 * (alpha - 1.0) * max(delta, 0.05) ** (alpha - 2.0) if alpha >= 2 else 0.0
-    if delta < OVERLAP_MIN:
-        raise ParjamError(f"--energy-window LOW = {lo:g} means overlaps ~{delta:.1e}, within "
-                          f"round-off of 1 - r/sigma (needs >= {OVERLAP_MIN:g}): contacts "
-                          f"cannot be told from gaps there; use LOW >= "
-                          f"{d * OVERLAP_MIN ** alpha / alpha:.1e}")
-    if delta_hi > OVERLAP_MAX:
-        raise ParjamError(f"--energy-window HIGH = {hi:g} means overlaps ~{delta_hi:.1e}: that "
-                          f"state is not near jamming; use HIGH <= "
-                          f"{d * OVERLAP_MAX ** alpha / alpha:.1e}")
-    if hi < WINDOW_MIN_RATIO * lo:
-        raise ParjamError(f"--energy-window {lo:g} {hi:g} is too narrow (HIGH/LOW < "
-                          f"{WINDOW_MIN_RATIO}): the bisection would land in it only by luck")
-    if ftol > 1e-2 * force:
-        raise ParjamError(f"--ftol {ftol:g} is not small against the contact forces (~{force:.1e}) "
-                          f"of a state with E/N = {lo:g}: force balance cannot define its "
-                          f"contacts; use --ftol <= {1e-2 * force:.1e} or a higher --energy-window")
-    if ftol < floor:
-        raise ParjamError(f"--ftol {ftol:g} is below the round-off level of the forces "
-                          f"(~{floor:.1e} = 1e-16 x the largest contact stiffness): no "
-                          f"minimisation reaches it")
 
 
 def fits_machine(args, world):

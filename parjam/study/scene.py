@@ -18,7 +18,8 @@ from parjam import softmodes, solver_choice
 from parjam.errors import ParjamError
 from parjam.packing import DISPERSITIES
 from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
-                             DEFAULT_RATIO, LADDERS, PHIC_METHODS, PackingProtocol)
+                             DEFAULT_RATIO, LADDERS, PHIC_METHODS, PackingProtocol,
+                             check_tolerances)
 from parjam.spectrum import MATRICES
 
 
@@ -238,6 +239,12 @@ def parse(data, path="<scene>"):
     meta.done()
     systems = _systems(top.raw("system"), path)
     protocol = _protocol(top.raw("protocol"), path)
+    for s in systems:  # the same refusals as parjam pack's --ftol/--energy-window
+        try:
+            check_tolerances(protocol.ftol, protocol.energy_window, s.alpha, s.d,
+                             names=("protocol.ftol", "protocol.energy_window"))
+        except ParjamError as exc:
+            raise ParjamError(f"{path}: {exc}") from None
     ens = _Table(top.raw("ensemble", {}), "ensemble", path)
     members = ens.int("members", 1, lo=1, hi=100_000)
     seed = ens.int("seed", 0, lo=0)
