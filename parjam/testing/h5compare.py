@@ -29,14 +29,18 @@ def differences(a, b):
     da, db = datasets(a), datasets(b)
     diff = sorted(set(da) ^ set(db))
     for name in sorted(set(da) & set(db)):
-        x, y = np.asarray(da[name]), np.asarray(db[name])
-        same = x.shape == y.shape and x.dtype == y.dtype and (
-            np.array_equal(x, y, equal_nan=x.dtype.kind == "f"))
-        if not same:
+        if not same_values(da[name], db[name], dtypes=True):
             diff.append(name)
     pa, pb = parameters(a), parameters(b)
     for key in sorted(set(pa) | set(pb)):
-        if key not in pa or key not in pb or not np.array_equal(np.asarray(pa[key]),
-                                                                np.asarray(pb[key])):
+        if key not in pa or key not in pb or not same_values(pa[key], pb[key]):
             diff.append(f"parameters/{key}")
     return diff
+
+
+def same_values(x, y, dtypes=False):
+    """Bitwise-equal values, NaN equal to NaN (an undefined result stored twice is the same)."""
+    x, y = np.asarray(x), np.asarray(y)
+    if x.shape != y.shape or (dtypes and x.dtype != y.dtype):
+        return False
+    return np.array_equal(x, y, equal_nan=x.dtype.kind == "f" and y.dtype.kind == "f")
