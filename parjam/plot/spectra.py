@@ -3,7 +3,7 @@ the transverse/longitudinal ratio eps_perp/eps_par per mode (Fig. "trans") and p
 
 import numpy as np
 
-from parjam.plot import DPI, pyplot
+from parjam.plot import DPI, atomic_png, pyplot
 from parjam.study.summary import read_summary
 
 
@@ -68,5 +68,6 @@ def dos_pictures(path, stem, dpi):
                title=f"{s['attrs']['system']}: {kind}")
         ax.legend(fontsize=8)
         fig.tight_layout()
-        fig.savefig(f"{stem}-dos-{kind}.png", dpi=dpi)
+        with atomic_png(f"{stem}-dos-{kind}.png") as tmp:  # no partial PNG, a full disk one line
+            fig.savefig(tmp, dpi=dpi)
         plt.close(fig)

@@ -18,7 +18,7 @@ import time
 import h5py
 import numpy as np
 
-from parjam import ensemble, env, io
+from parjam import ensemble, env, io, outputs
 from parjam.errors import ParjamError, UnjammedError
 from parjam.fluctuations import contact_fluctuations
 from parjam.plot.spectra import dos_pictures
@@ -99,8 +99,17 @@ class Runner:
         return os.path.isfile(self.part_path(st, m))
 
     def log(self, st, m):
-        with open(os.path.join(self.out, "stage.log"), "a") as fh:
-            fh.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} computed {st.name} member {m}\n")
+        self.append_log(f"computed {st.name} member {m}")
+
+    def append_log(self, text):
+        """One timestamped line appended to OUT/stage.log (a failed write is one line)."""
+        path = os.path.join(self.out, "stage.log")
+        try:
+            with open(path, "a") as fh:
+                fh.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {text}\n")
+        except OSError as exc:
+            raise ParjamError(f"{path}: cannot write ({exc.strerror or exc})",
+                              collective=False) from None
 
     # the loop ----------------------------------------------------------------
     def run(self):
@@ -167,8 +176,7 @@ class Runner:
                 ensemble.pack_member(protocol, m, comm, sub)
             except UnjammedError as exc:  # rare: the member is left out, the ensemble goes on
                 if comm.getRank() == 0:
-                    with open(self.failed_path(st.system, m), "w") as fh:
-                        fh.write(f"{exc}\n")
+                    outputs.write_bytes(self.failed_path(st.system, m), f"{exc}\n".encode())
                     print(f"parjam: warning: {st.system.name} member {m}: {exc}; left out",
                           file=sys.stderr, flush=True)
             return
@@ -219,8 +227,7 @@ class Runner:
                                     if not self.failed(st.system, m)]
             failed = [m for m in range(self.scene.members) if self.failed(st.system, m)]
             write_summary(path, st, by_kind, self.scene, failed)
-            with open(os.path.join(self.out, "stage.log"), "a") as fh:
-                fh.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} computed {st.name}\n")
+            self.append_log(f"computed {st.name}")
         self.mpi.Barrier()
 
     def report(self):
