@@ -81,3 +81,17 @@ def test_progress_of_every_member_on_every_rank_group(tmp_path):
     # the table's rows (the stability line under it is not a row)
     table = [ln.split()[0] for ln in r.stdout.splitlines()[1:] if ln.split()[0].isdigit()]
     assert sorted(set(table)) == ["0", "1"]  # the table numbers members the same way
+
+
+@pytest.mark.serial
+def test_run_progress_of_every_member_on_every_rank_group(tmp_path):
+    """parjam run on 2 ranks with 2 members: member 1 is computed by rank 1's group, and its
+    stage lines still reach world rank 0's log, numbered from 0 as in the results."""
+    (tmp_path / "s.toml").write_text(
+        '[[system]]\nd = 2\nN = 16\ndispersity = "bi"\n[protocol]\ndphi = [1e-3]\n'
+        '[ensemble]\nmembers = 2\nseed = 3\n[observables]\ncontacts = true\n')
+    r = _run(["run", "s.toml", "--out", "o"], tmp_path, mpi=2)
+    assert r.returncode == 0, r.stderr
+    for stage in ("pack", "network"):
+        done = sorted(re.findall(rf"run: {stage} \S+: member (\d+) of 2 in", r.stderr))
+        assert done == ["0", "1"], (stage, r.stderr)

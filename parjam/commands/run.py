@@ -19,7 +19,7 @@ ranks a group shares a member (distributed minimisation, distributed matrices).
 import os
 
 from parjam import env, outputs, resources
-from parjam.progress import Progress
+from parjam.progress import Progress, Relay
 from parjam.study import plan, scene as scene_mod
 from parjam.study.runner import Runner
 
@@ -54,9 +54,11 @@ def run(args):
     out = args.out or os.path.join("results", scene.name)
     outputs.check(world, dirs=[("--out", out)], inputs=[args.scene])
     resources.check(world, need[0], need[1], args.force, f"scene {scene.name!r}")
-    progress = Progress(world.tompi4py(), args.quiet, "run: ")
+    relay = Relay(world.tompi4py())  # every rank group's member lines reach world rank 0
+    progress = Progress(world.tompi4py(), args.quiet, "run: ", relay=relay)
     runner = Runner(scene, stages, out, world, progress)
     code = runner.run()
+    relay.close()
     if world.getRank() == 0 and code == 0:
         print(runner.report(), flush=True)
     return code

@@ -148,9 +148,10 @@ class Runner:
         todo = gm.bcast([m for m in mine if not self.member_done(st, m)] if gm.Get_rank() == 0
                         else None, root=0)
         label = f"{st.kind}{' ' + st.matrix if st.matrix else ''} {st.system.name}"
+        group_progress = self.progress.group(comm.tompi4py(), "")  # relayed to world rank 0
         if len(todo) < len(mine):
-            self.progress(f"{label}: {len(mine) - len(todo)} member(s) of this rank's group "
-                          f"already done")
+            group_progress(f"{label}: {len(mine) - len(todo)} member(s) of this rank's group "
+                           f"already done")
         if gm.Get_rank() == 0:
             os.makedirs(self.stage_dir(st), exist_ok=True)
         gm.Barrier()
@@ -163,8 +164,8 @@ class Runner:
             self.counts[st.kind] += 1
             if gm.Get_rank() == 0:
                 self.log(st, m)
-            self.progress(f"{label}: member {m} of {self.scene.members} in "
-                          f"{time.time() - t0:.1f} s")
+            group_progress(f"{label}: member {m} of {self.scene.members} in "
+                           f"{time.time() - t0:.1f} s")
         return False
 
     def compute_member(self, st, m, comm):
