@@ -1,13 +1,17 @@
 """Making the states of one ensemble member and writing them: the work behind ``parjam pack``."""
 
 import os
+import sys
 import time
 
+import h5py
 import numpy as np
 
-from parjam import io
+from parjam import checkpoint, faults, io, manifest, order
+from parjam.importer import from_file
 from parjam.network import analyze
-from parjam.packing import JamSettings, Jammer, member_rng, random_packing
+from parjam.packing import (RESOLVED_FRACTION, JamSettings, Jammer, member_rng,
+                            random_packing)
 
 
 def settings_from(args):
@@ -20,7 +24,6 @@ def member_states(args, member, comm, progress, checkpoint=None):
     rng = member_rng(args.seed, member)
     start_phi = args.phi if args.phi is not None else args.phi_start
     if getattr(args, "start", None):  # pack --from FILE
-        from parjam.importer import from_file
 
         pack = from_file(args.start, args.alpha)
     else:
@@ -84,8 +87,6 @@ def find_phi_c(jammer, args, progress):
 def resolution_flags(states, resolution, label_prefix):
     """Record the resolution of phi_c in every state and flag (file and one line on stderr)
     each requested dphi that it does not resolve to RESOLVED_FRACTION."""
-    from parjam.packing import RESOLVED_FRACTION
-
     for st in states:
         st.info["phi_c_resolution"] = resolution
         dphi = st.info.get("dphi")
@@ -110,8 +111,6 @@ def quality_checks(pack, net, label, dphi=None):
     a crystallised 2D packing (hexatic order, parjam.order) and a force balance that is poor
     relative to the contact forces (e.g. alpha = 3 at dphi = 1e-8, where forces are ~1e-16 and
     the absolute --ftol means little)."""
-    from parjam import order
-
     extra, warning = order.check(pack, net, dphi)  # hexatic order and contact excess
     if warning:
         _warn(f"{label}: {warning}")
@@ -141,8 +140,6 @@ def stability_observables(st, label):
 
 
 def _warn(msg):
-    import sys
-
     print(f"parjam: warning: {msg}", file=sys.stderr, flush=True)
 
 
@@ -153,8 +150,6 @@ def file_name(out, member, state):
 def member_checkpoint(args, member, comm, progress, run_params):
     """The member's checkpoint (parjam.checkpoint) in DIR/.checkpoint, or None when
     --checkpoint-every is 0; with --no-resume an old one is discarded."""
-    from parjam import checkpoint
-
     every = getattr(args, "checkpoint_every", 0.0)
     if run_params is None or every <= 0:
         return None
@@ -172,8 +167,6 @@ def pack_member(args, member, comm, progress, run_params=None):
     """Compute, write (group rank 0) and summarise the states of one ensemble member; then its
     manifest record (parjam.manifest), so that a restarted run skips it.  ``args`` is the
     member's parjam.protocol.PackingProtocol (from ``parjam pack`` or a scene)."""
-    from parjam import faults, manifest
-
     t0 = time.time()
     ck = member_checkpoint(args, member, comm, progress, run_params)
     states, protocol, totals = member_states(args, member, comm, progress, ck)
@@ -219,8 +212,6 @@ SUMMARY_KEYS = ("phi", "N_active", "excess", "z", "dz", "pressure", "max_force",
 
 def rows_from_files(out, member, files):
     """Summary rows of a finished member, read back from its files (resumed runs)."""
-    import h5py
-
     rows = []
     for name in sorted(files):
         path = os.path.join(out, name)

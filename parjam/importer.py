@@ -13,9 +13,13 @@ and the line.
 import os
 import re
 
+import h5py
 import numpy as np
 
+from parjam import io
 from parjam.errors import ParjamError
+from parjam.io import read_packing
+from parjam.system import Packing
 
 FORMATS = ("extxyz", "lammps-data", "lammps-dump", "h5md")
 EXTENSIONS = {".xyz": "extxyz", ".extxyz": "extxyz", ".data": "lammps-data",
@@ -47,8 +51,6 @@ def detect_format(path, fmt=None):
 def load(path, fmt=None, diameters=None, dim=None, alpha=2.0):
     """A validated parjam Packing from a foreign file (module doc); ``meta`` records the source,
     its format and the length scale applied (new length = old length * length_scale)."""
-    from parjam import io
-
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise ParjamError(f"{path}: no such file")
@@ -341,8 +343,6 @@ def read_h5md(path, dim=None):
     """The last frame of the first particle group of an H5MD file: position (time series or
     fixed), box edges (time series or fixed; a (d, d) matrix must be diagonal), species,
     diameter or radius (fixed or time series) when present."""
-    import h5py
-
     if not h5py.is_hdf5(path):
         raise ValueError("not an HDF5 file")
     try:
@@ -384,8 +384,6 @@ def read_h5md(path, dim=None):
 
 def _last_frame(g, name, ndim):
     """A fixed dataset or the last frame of a time series; None if absent."""
-    import h5py
-
     if name not in g:
         return None
     obj = g[name]
@@ -407,9 +405,6 @@ def _last_frame(g, name, ndim):
 def from_file(path, alpha):
     """A packing to start ``pack --from FILE`` with: parjam's own file (or any H5MD file
     read_packing accepts), the potential exponent set to ``alpha``."""
-    from parjam.io import read_packing
-    from parjam.system import Packing
-
     pack = read_packing(path)
     meta = {"species": pack.meta.get("species"), "source": os.path.abspath(path)}
     return Packing(pack.pos.copy(), pack.diam.copy(), pack.L, alpha, pack.eps, meta)

@@ -12,18 +12,18 @@ import sys
 
 import h5py
 import numpy as np
+from scipy.spatial import cKDTree
 
-from parjam import __version__
+from parjam import __version__, env, outputs, potential
 from parjam.errors import ParjamError
-from parjam.system import Packing
+from parjam.network import contact_forces
+from parjam.system import Packing, wrap
 
 
 def atomic_h5(path):
     """Open ``path`` for writing: an in-memory HDF5 file whose image is written atomically when
     the block succeeds (parjam.outputs: the output policy; a full disk is one line, never a
     partial file)."""
-    from parjam import outputs
-
     return outputs.atomic_h5(path)
 
 
@@ -78,8 +78,6 @@ def _is_numeric_seq(val):
 
 def provenance(comm_size, extra=None):
     """Versions, command line and PETSc options: stored with every result."""
-    from parjam import env
-
     prov = {"versions": env.versions(), "command_line": " ".join(sys.argv),
             "ranks": int(comm_size)}
     try:
@@ -155,9 +153,6 @@ def observable(f, name):
 
 
 def _write_contacts(f, pack, net):
-    from parjam.network import contact_forces
-    from parjam import potential
-
     c = net.all_contacts
     g = f.create_group("connectivity")
     g.create_dataset("contacts", data=np.stack([c.i, c.j], axis=1).reshape(-1, 2))
@@ -281,7 +276,6 @@ def validated_packing(path, pos, diam, edges, params):
         raise ParjamError(f"{path}: epsilon must be > 0, got {eps}")
     meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in params.items()}
     meta["source"] = os.path.abspath(path)
-    from parjam.system import wrap
 
     pos = wrap(pos, L)
     _check_distinct(path, pos, diam, L)
@@ -296,8 +290,6 @@ DUPLICATE_TOL = 1e-9  # centres closer than this times the smallest diameter coi
 
 def _check_distinct(path, pos, diam, L):
     """Duplicated particles (coinciding centres) would divide by r = 0 in every force."""
-    from scipy.spatial import cKDTree
-
     pairs = cKDTree(pos, boxsize=L).query_pairs(DUPLICATE_TOL * diam.min(),
                                                 output_type="ndarray")
     if len(pairs):

@@ -19,7 +19,12 @@ import json
 import os
 import re
 
+import h5py
+
+from parjam import outputs
+from parjam.checkpoint import DIRECTORY
 from parjam.errors import ParjamError
+from parjam.io import sha256
 
 FORMAT = "parjam-pack-manifest"
 VERSION = 1
@@ -51,8 +56,6 @@ def run_parameters(args):
 def write_json(path, obj):
     """Atomic JSON write (parjam.outputs: temporary name, fsync, rename; a full disk is one
     line)."""
-    from parjam import outputs
-
     outputs.write_bytes(path, json.dumps(obj, indent=1, sort_keys=True).encode())
 
 
@@ -98,8 +101,6 @@ def record_path(out, member):
 
 def write_member_record(out, member, paths, params):
     """After a member's files are written: its record (file names and sha256)."""
-    from parjam.io import sha256
-
     os.makedirs(os.path.join(out, RECORDS), exist_ok=True)
     rec = {"member": int(member), "parameters": params,
            "files": {os.path.basename(p): sha256(p) for p in paths}}
@@ -149,8 +150,6 @@ def check_parameters(out, params):
 
 
 def _check_file(path, params, out):
-    import h5py
-
     try:
         with h5py.File(path, "r") as f:
             attrs = dict(f["parameters"].attrs) if "parameters" in f else {}
@@ -175,8 +174,6 @@ def _check_file(path, params, out):
 def finished_members(out, params):
     """{member: {file: sha256}} of the members whose every file is present and intact, and the
     list of members whose record exists but whose files do not match it (recomputed)."""
-    from parjam.io import sha256
-
     records = {}
     man = load(out)
     for key, files in ((man or {}).get("members") or {}).items():
@@ -207,8 +204,6 @@ _TMP = re.compile(r"^\..+\.tmp(\d+)$")
 
 def temporary_dirs(out):
     """Where parjam pack writes through temporary files: DIR, its records and checkpoints."""
-    from parjam.checkpoint import DIRECTORY
-
     return (out, os.path.join(out, RECORDS), os.path.join(out, DIRECTORY))
 
 

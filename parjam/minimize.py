@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from parjam import env, factor
+from parjam import env, factor, potential
 from parjam import fire as fire_mod
 from parjam.logevents import FACTOR, event
 from parjam.fire import SNAPSHOT_EVERY, FireParams, FireState, MinResult, fire  # noqa: F401
@@ -229,8 +229,6 @@ def minimize(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_
 
 def _force_scale(ff):
     """Mean contact force magnitude |V'(r)| over all contacts (0 if there are none)."""
-    from parjam import potential
-
     pos = ff.gather()
     i, j, rij, r, sigma = ff.contacts(pos)
     own = (i >= ff.lo) & (i < ff.hi)

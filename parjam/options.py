@@ -13,6 +13,10 @@ import ctypes
 import difflib
 import functools
 
+import numpy as np
+
+from parjam import env
+
 # options prefixes of parjam's solvers, the commands that create them first
 PREFIXES = {"modes": ("modes_",), "pack": ("newton_",), "moduli": ("moduli_",),
             "softmodes": ("soft_", "soft_inertia_", "soft_gap_"),
@@ -91,13 +95,10 @@ def _library():
 def unused():
     """Names (no dash) of the options in PETSc's database that nothing has read, or None when
     the library's list is unreachable."""
-    from parjam import env
-
     PETSc = env.petsc()
     lib = _library()
     if lib is None:
         return None
-    import numpy as np
 
     int_type = {4: ctypes.c_int32, 8: ctypes.c_int64}[np.dtype(PETSc.IntType).itemsize]
     n = int_type(0)

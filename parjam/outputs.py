@@ -22,9 +22,14 @@
 """
 
 import contextlib
+import json
+import math
 import os
 import stat
 import tempfile
+
+import h5py
+import numpy as np
 
 from parjam.errors import ParjamError
 
@@ -250,8 +255,6 @@ def atomic_h5(path, make_dirs=True):
     The core driver keeps every write inside memory: the disk sees only our own ``os.write``
     of the finished image, so a full disk is a clean one-line error and HDF5 never holds a
     half-written file open until the interpreter exits."""
-    import h5py
-
     global _IMAGES
     _IMAGES += 1
     f = h5py.File(f"parjam-image-{os.getpid()}-{_IMAGES}.h5", "w", driver="core",
@@ -268,10 +271,6 @@ def atomic_h5(path, make_dirs=True):
 def plain(value):
     """``value`` with numpy scalars and arrays as Python numbers and lists, and every NaN or
     infinity as None: JSON has no NaN (Python's json writes the invalid token ``NaN``)."""
-    import math
-
-    import numpy as np
-
     if isinstance(value, dict):
         return {str(k): plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -287,8 +286,6 @@ def plain(value):
 
 def json_text(value, **kw):
     """Valid JSON of ``value`` (see :func:`plain`): never NaN or Infinity."""
-    import json
-
     return json.dumps(plain(value), allow_nan=False, **kw)
 
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, minimize
+from parjam import env, minimize, potential, stability
 from parjam.errors import ParjamError, UnjammedError
 from parjam.forces import ForceField
 from parjam.logstage import log_stage
@@ -223,9 +223,6 @@ class Jammer:
         {"negative_curvatures_found", "excess_found", "escapes", "negative_curvatures",
         "stable", "curvature_shift", "lowest_curvature_found"}; a state that stays unstable is
         returned flagged (stable = 0), never dropped."""
-        from parjam import stability
-        from parjam.network import analyze
-
         with log_stage("pack: stability"):
             net = analyze(self.pack)
             tol = self.balance_tol(net)
@@ -268,8 +265,6 @@ class Jammer:
     def relax_balanced(self, phi=None, e_stop=-np.inf):
         """``relax``, then on to ``balance_tol`` where --ftol is loose against the contact forces
         (near jamming, and for alpha > 2 whose forces ~dphi^(alpha-1) fall below --ftol)."""
-        from parjam.network import analyze
-
         res = self.relax(phi, e_stop)
         if res.ok:
             res = self.polish(res, self.balance_tol(analyze(self.pack)))
@@ -297,8 +292,6 @@ class Jammer:
     def balance_tol(self, net):
         """Force tolerance of a returned state: --ftol, or REL_BALANCE of the mean contact force
         where that is tighter, floored at the forces' round-off level."""
-        from parjam import potential
-
         c = net.contacts
         k = float(np.mean(potential.d2V(c.r, c.sigma, self.pack.alpha, self.pack.eps))) \
             if len(c) else 1.0
@@ -401,8 +394,6 @@ class Jammer:
     def _refine(self, dphi_stop, ratio, max_steps, tol, res=None):
         """The loop of ``refine_phi_c``; ``tol`` None: stop at the first state within
         1.5 dphi_stop once there are two estimates (the extrapolation protocol's cost)."""
-        from parjam.network import analyze
-
         estimates = []
         jammed_phi = self.pack.phi
         for it in range(1, max_steps + 1):
@@ -457,8 +448,6 @@ class Jammer:
     def at_phi(self, phi, label, e_stop=None, **info):
         """Minimised, stable (``stabilise``) state at volume fraction phi; UnjammedError if the
         energy falls below ``e_stop`` (default: 1e-6 of the low end of the energy window)."""
-        from parjam.network import analyze
-
         e_stop = self.settings.e_low * self.pack.n * 1e-6 if e_stop is None else e_stop
         res = self.relax_balanced(phi, e_stop=e_stop)
         if res.status == "unjammed" or (res.ok and analyze(self.pack).n_active == 0):
@@ -537,7 +526,7 @@ def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=DEFAULT_RA
     pack = random_packing(d, n, phi0, alpha, dispersity, ratio, member_rng(seed, member))
     jam = Jammer(comm, pack, settings)
     try:
-        phic = jam.find_phi_c()
+        jam.find_phi_c()  # the bisection, then the refinement from the jammed side
         phi_c = jam.refine_phi_c(min(dphis) if len(dphis) else 1e-6)["phi_c"]
         states = jam.ladder(phi_c, list(dphis)) if len(dphis) else []
     finally:
