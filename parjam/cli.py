@@ -12,10 +12,14 @@ import importlib
 import os
 import pkgutil
 import re
+import signal
 import sys
+import time
 import traceback
 
-from parjam import __version__, env
+import numpy as np
+
+from parjam import __version__, env, faults, options
 from parjam.errors import ParjamError
 
 _PETSC_OPT = re.compile(r"^-[A-Za-z_][A-Za-z0-9_:]+$")
@@ -115,8 +119,6 @@ def main(argv=None):
     except SystemExit as exc:  # argparse already printed its one-line usage error
         return int(exc.code or 0)
     try:
-        from parjam import faults
-
         faults.point("command")  # PARJAM_FAULT testing hook (parjam/faults.py)
         code = _run_command(args, petsc_args)
         # a command is collective: return only when every rank is done, so the files that rank 0
@@ -188,8 +190,6 @@ class _ClosedPipeTolerantStream:
 def quiet_closed_stdout():
     """SIGPIPE ignored again after PETSc installed its handler (which dumps 'Caught signal
     number 13' and aborts), and a stdout that tolerates a closed pipe."""
-    import signal
-
     if hasattr(signal, "SIGPIPE"):
         signal.signal(signal.SIGPIPE, signal.SIG_IGN)
     if not isinstance(sys.stdout, _ClosedPipeTolerantStream) and sys.stdout is not None:
@@ -199,8 +199,6 @@ def quiet_closed_stdout():
 def _run_command(args, petsc_args):
     """The command; a PETSc error that a bad option value caused becomes a one-line ParjamError
     (parjam.options.option_error)."""
-    from parjam import options
-
     PETSc = env.petsc()
     try:
         return args.run(args)
@@ -216,7 +214,6 @@ def _warn_unused_options(petsc_args, command, collective):
     ``collective``), on rank 0 (parjam.options.warnings_for)."""
     if not petsc_args:
         return
-    from parjam import options
 
     lines = options.warnings_for(petsc_args, command)
     if collective and _outcome_comm().Get_size() > 1:
@@ -247,9 +244,6 @@ def _closing_outcome(code, wait=None):
     """Sum of failed ranks and the largest exit code over all ranks, by a reduction on the
     private communicator; with ``wait`` (seconds), give up and return None if the other ranks
     do not join in time (they are stuck in a collective of the command)."""
-    import time
-
-    import numpy as np
     from mpi4py import MPI
 
     comm = _outcome_comm()

@@ -3,6 +3,8 @@
 
 import contextlib
 
+from parjam import outputs
+
 
 DPI = 150  # every PNG: labels and legends (>= 8 pt) readable at the size they are drawn
 LEGEND_FONTSIZE = 8
@@ -25,8 +27,6 @@ def atomic_png(path):
     to ``path`` when the block succeeds and removed when it fails: no partial image is ever
     left at ``path`` (parjam.outputs: the output policy; a full disk is one line).  Figures
     left open by a failed drawing are closed."""
-    from parjam import outputs
-
     try:
         with outputs.atomic_path(path, ".png", make_dirs=True) as tmp:
             yield tmp

@@ -10,9 +10,11 @@ against dz.
 import argparse
 import json
 
+import h5py
 import numpy as np
 
 from parjam.plot import DPI, LEGEND_FONTSIZE, pyplot
+from parjam.structure import StructureFactor
 
 
 def _label(fits):
@@ -65,15 +67,12 @@ def _fit_line(ax, x, y, slope, color, label):
 def structure_figure(path_h5, path, omega_max=None, bins=60):
     """F_T(k, omega) and F_L(k, omega) maps (log colour) with the peaks, the lines c k from the
     moduli and omega*, from the file of ``parjam lengths --what speeds structure``."""
-    import h5py
-
     plt = pyplot()
     with h5py.File(path_h5, "r") as f:
         g, a = f["lengths/structure"], dict(f["lengths"].attrs)
         omega, k = g["omega"][()], g["k"][()]
         W = {"T": g["weight_T"][()], "L": g["weight_L"][()]}
         peaks = {"T": g["peak_T"][()], "L": g["peak_L"][()]}
-    from parjam.structure import StructureFactor
 
     sf = StructureFactor(omega, k, None, None, W["L"], W["T"], float(a["L"]))
     wmax = omega_max or 1.5 * np.nanmax(peaks["L"])
@@ -138,8 +137,6 @@ def moduli_files_figure(paths_h5, path):
     """From files of ``parjam moduli`` (e.g. the states of a compression ladder): B, G and the
     softest shear G_min against the pressure, and G / B, log-log with fitted slopes (expected
     in 3D harmonic packings: B ~ p^0, G ~ p^(1/2))."""
-    import h5py
-
     rows = []
     for p in paths_h5:
         with h5py.File(p, "r") as f:

@@ -19,6 +19,7 @@ from typing import Callable
 import h5py
 import numpy as np
 
+from parjam import outputs
 from parjam.errors import ParjamError
 from parjam.plot import DPI, LEGEND_FONTSIZE, atomic_png, pyplot
 from parjam.fits import fit_eq33, fit_power, law, log_slope
@@ -507,8 +508,6 @@ def sizes(groups, fits):
 def write_json(path, fits):
     """The fits as JSON (indent 1), written atomically (parjam.outputs); an undefined value
     (NaN, inf) is null, so that the file is valid JSON."""
-    from parjam import outputs
-
     outputs.write_bytes(path, outputs.json_text(fits, indent=1).encode(), make_dirs=True)
 
 

@@ -7,8 +7,10 @@ import dataclasses
 import os
 import sys
 
+import h5py
 import numpy as np
 
+from parjam import env, io
 from parjam import softmodes as sm
 from parjam.plot import DPI, LEGEND_FONTSIZE, pyplot
 
@@ -106,8 +108,6 @@ def _frame(ax, L, title):
 
 def softfig(pack, path, ncut=20, comm=None):
     """Fig. "softfig": a soft mode of a 2D packing after ``ncut`` contacts along x = L/2 are cut."""
-    from parjam import env
-
     comm = comm or env.petsc().COMM_SELF
     cs = segment_cut(sm.prepare(pack, [sm.Plane(0, 0.5)]), sm.Plane(0, 0.5), ncut)
     count, V = soft_space(comm, cs)
@@ -163,8 +163,6 @@ def overlap_figure(path_h5, path):
     """From the file of ``parjam softmodes``: the overlap function f(x) (with and without the
     trivially localised modes, its lower bound c) and the extension e of every soft mode, sorted,
     against the threshold e0 of the extended subspace."""
-    import h5py
-
     with h5py.File(path_h5, "r") as f:
         g = f["softmodes"]
         ov, ext = g["overlap"][()], np.sort(g["extension"][()])[::-1]
@@ -189,8 +187,6 @@ def overlap_figure(path_h5, path):
 
 
 def main(argv=None):
-    from parjam import env, io
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("packing", help="an isostatic 2D packing (about 1000 particles)")
     p.add_argument("--out-dir", default=".", help="where softfig.png and figs.png go")
