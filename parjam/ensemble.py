@@ -7,7 +7,7 @@ import time
 import h5py
 import numpy as np
 
-from parjam import checkpoint, faults, io, manifest, order
+from parjam import checkpoint, faults, io, manifest, order, outputs
 from parjam.importer import from_file
 from parjam.network import analyze
 from parjam.packing import (RESOLVED_FRACTION, JamSettings, Jammer, member_rng,
@@ -184,20 +184,27 @@ def pack_member(args, member, comm, progress, run_params=None):
             **{k: v for k, v in st.info.items()}, **totals,
         }
         path = file_name(args.out, member, st)
-        if comm.getRank() == 0:
+
+        def write(st=st, net=net, params=params, path=path):
             prov = io.provenance(comm.tompi4py().Get_size(), {"world_ranks": _world_size()})
             st.pack.meta.setdefault("species", st.pack.meta.get("species"))
             extra = quality_checks(st.pack, net, f"member {member} {st.label}",
                                    st.pack.phi - st.info.get("phi_c", np.nan))
             extra.update(stability_observables(st, f"member {member} {st.label}"))
             io.write_packing(path, st.pack, net, params, prov, extra)
+
+        # the group's rank 0 writes; a failed write (a full disk) ends every rank of the group
+        # with the same line, not an MPI abort
+        outputs.on_root(comm, write)
+        if comm.getRank() == 0:
             paths.append(path)
         if comm.getRank() == 0:  # one row per state, however many ranks share the member
             rows.append({"member": member, "state": st.label, "file": path, **net.summary(),
                          "phi_c": st.info.get("phi_c", np.nan),
                          "stable": int(st.info.get("stable", 1))})
-    if comm.getRank() == 0 and run_params is not None:
-        manifest.write_member_record(args.out, member, paths, run_params)
+    if run_params is not None:
+        outputs.on_root(comm, lambda: manifest.write_member_record(args.out, member, paths,
+                                                                   run_params))
     if ck is not None:
         ck.remove()
     progress(f"done in {time.time() - t0:.1f} s ({totals['fire_steps']} FIRE steps, "
