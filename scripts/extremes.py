@@ -31,9 +31,8 @@ import numpy as np
 
 def member(d, n, seed, m, dphis, alpha):
     from parjam import env
-    from parjam.ensemble import member_rng
     from parjam.network import analyze
-    from parjam.packing import Jammer, random_packing
+    from parjam.packing import Jammer, member_rng, random_packing
 
     PETSc = env.petsc()
     disp = "bi" if d == 2 else "mono"
@@ -157,13 +156,15 @@ def census_files(paths):
     """Census table (stability found -> after, Nc - Nc_iso) from written packing files."""
     import h5py
 
+    from parjam import io
+
     rows = {}
     for path in paths:
         with h5py.File(path, "r") as f:
             o, par = f["observables"], f["parameters"].attrs
             state = par["state"]
             state = state.decode() if isinstance(state, bytes) else str(state)
-            rows.setdefault(state, []).append({k: o[k][()] for k in (
+            rows.setdefault(state, []).append({k: io.observable(f, k) for k in (
                 "excess", "stable", "negative_curvatures_found", "excess_found", "escapes",
                 "max_force_rel", "pressure", "N_active") if k in o} | {
                     "member": int(par["member"]), "seconds": float(par["seconds"])})

@@ -81,7 +81,7 @@ def _assert_same(out, reference, exact=True):
             pa, pb = observable(fa, "pressure"), observable(fb, "pressure")
             assert abs(pa - pb) <= 1e-7 * pb, name
             backbone = ~fb["particles/all/rattler"][()].astype(bool)
-            L = fb["particles/all/box/edges"][()]
+            L = fb["particles/all/box/edges/value"][0]
             du = fa["particles/all/position/value"][0] - fb["particles/all/position/value"][0]
             du = (du - L * np.round(du / L))[backbone]
             assert np.abs(du - du.mean(axis=0)).max() <= 1e-7, name
