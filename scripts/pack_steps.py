@@ -73,7 +73,7 @@ def run_one(n, seed, dphi, phi_start, dim=3, dispersity="mono", tail_dof=None, v
         fire_mod.DEFAULT_VARIANT = variant
 
     PETSc = env.petsc()
-    from parjam.ensemble import member_rng
+    from parjam.packing import member_rng
     from parjam.packing import Jammer, random_packing
 
     if tail_dof is not None:  # A/B of FIRE's tail against Newton's (minimize.FIRE_TAIL_DOF)

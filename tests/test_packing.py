@@ -125,7 +125,7 @@ def test_distributed_minimisation_matches_serial(world):
     """One packing minimised across all ranks equals the serial one: the same minimum to
     round-off for a quench at fixed phi, and phi_c within the width of the energy window (the
     reductions round differently on 2 ranks, so the bisection may stop elsewhere inside it)."""
-    from parjam.ensemble import member_rng
+    from parjam.packing import member_rng
     from parjam.packing import Jammer, make_jammed, random_packing
 
     PETSc = env.petsc()
@@ -154,7 +154,7 @@ def test_extrapolated_phi_c_matches_bisection_of_same_configuration(d):
     reaches (the same configuration) must agree to a few percent of dphi.  Measured at N = 256,
     3D: 1-2 % at dphi = 1e-3, below 0.6 % at 1e-4 and 1e-5.  (Serial on each rank: the
     distributed minimiser is compared with the serial one above.)"""
-    from parjam.ensemble import member_rng
+    from parjam.packing import member_rng
     from parjam.packing import Jammer, random_packing
 
     phi0 = {2: 0.86, 3: 0.66}[d]
@@ -192,7 +192,7 @@ def test_pack_cli_extrapolate_writes_ladder_without_phi_c_file(shared_tmp):
 def test_newton_with_cg_gamg_reaches_the_same_minimum():
     """-newton_ksp_type cg -newton_pc_type gamg (no factorisation, for very large N) converges
     to the same minimum as the default MUMPS LDL^T from the same FIRE hand-over."""
-    from parjam.ensemble import member_rng
+    from parjam.packing import member_rng
     from parjam.packing import Jammer, random_packing
 
     PETSc = env.petsc()
@@ -226,7 +226,7 @@ def test_fire_to_the_tolerance_reaches_the_newton_minimum(monkeypatch):
     same start it ends in the minimum that FIRE + Newton finds, and that minimum is stable (its
     dense Hessian has no negative eigenvalue beyond round-off)."""
     from parjam import minimize
-    from parjam.ensemble import member_rng
+    from parjam.packing import member_rng
     from parjam.packing import Jammer, random_packing
 
     PETSc = env.petsc()
@@ -255,7 +255,7 @@ def test_random_start_numbers_neighbours_nearby():
     """Particles are numbered cell by cell (parjam.packing.spatial_order): the index distance
     of neighbour pairs is small against N (random numbering: ~N/3), every cell's particles are
     contiguous, and bidisperse species stay mixed in space."""
-    from parjam.ensemble import member_rng
+    from parjam.packing import member_rng
     from parjam.system import neighbour_pairs
     from parjam.packing import random_packing
 

@@ -86,7 +86,7 @@ def test_wide_polydispersity():
 # --- crystallisation -------------------------------------------------------------------------
 def _quench_2d(dispersity, phi=0.88, n=128, seed=4):
     """A random 2D start minimised at fixed phi (above phi_c for both mixtures)."""
-    from parjam.ensemble import member_rng
+    from parjam.packing import member_rng
     from parjam.packing import Jammer
 
     jam = Jammer(SELF, random_packing(2, n, phi, dispersity=dispersity,

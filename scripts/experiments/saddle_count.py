@@ -26,7 +26,7 @@ SHIFTS = [1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9]
 def main():
     n, seed, every = (int(a) for a in sys.argv[1:4])
     PETSc = env.petsc()
-    from parjam.ensemble import member_rng
+    from parjam.packing import member_rng
     from parjam.packing import Jammer, random_packing
 
     plain_fire, plain_minimise = minimize.fire, minimize.minimize

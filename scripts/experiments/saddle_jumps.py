@@ -121,7 +121,7 @@ def make_fire(K):
 def main():
     n, seed, K = (int(a) for a in sys.argv[1:4])
     PETSc = env.petsc()
-    from parjam.ensemble import member_rng
+    from parjam.packing import member_rng
     from parjam.packing import Jammer, random_packing
 
     minimize.fire = make_fire(K)
