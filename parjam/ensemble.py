@@ -10,7 +10,8 @@ import numpy as np
 from parjam import checkpoint, faults, io, manifest, order, outputs
 from parjam.importer import from_file
 from parjam.network import analyze
-from parjam.packing import (RESOLVED_FRACTION, JamSettings, Jammer, member_rng,
+from parjam.errors import UnjammedError
+from parjam.packing import (RESOLVED_FRACTION, JamSettings, Jammer, LadderUnjammed, member_rng,
                             random_packing)
 
 
@@ -30,25 +31,37 @@ def member_states(args, member, comm, progress, checkpoint=None):
         pack = random_packing(args.dim, args.n, start_phi, args.alpha, args.dispersity,
                               args.ratio, rng)
     jammer = Jammer(comm, pack, settings_from(args), progress, checkpoint)
+    stopped = None
     try:
         if args.phi is not None:
             states = [jammer.at_phi(args.phi, f"phi{args.phi:.4f}")]
             protocol = "quench"
         else:
             phi_c, states, search, resolution = find_phi_c(jammer, args, progress)
-            if args.pressure:
-                protocol = f"{search}+pressure"
-                for p in sorted(args.pressure):
-                    states.append(jammer.at_pressure(p, phi_c))
-            else:
-                protocol = f"{search}+ladder"
-                states += jammer.ladder(phi_c, args.dphi, args.ladder)
+            try:
+                if args.pressure:
+                    protocol = f"{search}+pressure"
+                    for p in sorted(args.pressure):
+                        try:
+                            states.append(jammer.at_pressure(p, phi_c))
+                        except UnjammedError as exc:
+                            raise LadderUnjammed(f"target pressure {p:.1e} unjammed: {exc}",
+                                                 [], p) from None
+                else:
+                    protocol = f"{search}+ladder"
+                    states += jammer.ladder(phi_c, args.dphi, args.ladder)
+            except LadderUnjammed as exc:  # keep the jammed states made before that step
+                states += exc.states
+                stopped = exc
+                for st in states:
+                    st.info["ladder_unjammed_at"] = exc.step
             resolution_flags(states, resolution, f"member {member} ")
+            virial_flags(states)
         totals = {"fire_steps": jammer.total_fire, "newton_steps": jammer.total_newton,
                   "force_evaluations": jammer.ff.n_force_calls}
     finally:
         jammer.destroy()
-    return states, protocol, totals
+    return states, protocol, totals, stopped
 
 
 def smallest_dphi(args):
@@ -101,6 +114,44 @@ def resolution_flags(states, resolution, label_prefix):
                   f"the file)")
 
 
+# a state's own distance to jamming (virial relation of its contact network) and its label
+# phi - phi_c agree to DPHI_VIRIAL_TOL + DPHI_VIRIAL_SLOPE * dphi (relative): the relation is
+# exact to O(dphi) for a fixed network; measured < 1 % up to dphi = 1e-3 and 11 % at 0.1
+# (3D mono N = 64).  A state further off re-jammed at another phi_c (a rearrangement on the way).
+DPHI_VIRIAL_TOL = 0.05
+DPHI_VIRIAL_SLOPE = 2.0
+
+
+def virial_dphi(pack):
+    """phi - phi_c of a state from its own contact network, alpha E phi / (p V) (the virial
+    relation of parjam.packing.Jammer.refine_phi_c); NaN without pressure."""
+    net = analyze(pack)
+    if net.pressure <= 0 or net.energy <= 0:
+        return np.nan
+    return pack.alpha * net.energy * pack.phi / (net.pressure * pack.volume)
+
+
+def virial_flags(states):
+    """Record the virial dphi of every state with a phi_c and whether it agrees with its label
+    phi - phi_c (``dphi_virial``, ``dphi_virial_ok``; ``stability_observables`` says so on
+    stderr where it does not)."""
+    for st in states:
+        phi_c = st.info.get("phi_c")
+        if phi_c is None:
+            continue
+        label = st.pack.phi - phi_c
+        found = virial_dphi(st.pack)
+        tol = virial_tolerance(label)
+        st.info["dphi_virial"] = found
+        st.info["dphi_virial_ok"] = int(bool(np.isfinite(found)
+                                             and abs(found - label) <= tol * abs(label)))
+
+
+def virial_tolerance(dphi):
+    """Relative tolerance between a state's virial dphi and its label phi - phi_c."""
+    return DPHI_VIRIAL_TOL + DPHI_VIRIAL_SLOPE * abs(dphi)
+
+
 REL_FORCE_WARN = 1e-4  # max|F| / mean contact force above this: force balance is poor
 # (harmonic phi_c states end near 1e-5: forces ~1e-8 against ftol = 1e-13; alpha = 3 at
 # dphi = 1e-8 reaches 1.8e-3)
@@ -123,18 +174,31 @@ def quality_checks(pack, net, label, dphi=None):
 
 
 STABILITY_KEYS = ("stable", "negative_curvatures", "negative_curvatures_found", "excess_found",
-                  "escapes", "curvature_shift", "lowest_curvature_found")
+                  "escapes", "cycles", "curvature_shift", "lowest_curvature_found",
+                  "dphi_virial", "dphi_virial_ok", "ladder_unjammed_at")
 
 
 def stability_observables(st, label):
-    """/observables entries of the stability check (parjam.packing.Jammer.stabilise); a state
-    that could not be made a stable minimum is flagged (stable = 0) and said on stderr."""
+    """/observables entries of the stability check (parjam.packing.Jammer.stabilise), the virial
+    dphi check (``virial_flags``) and, for a member whose ladder unjammed, the step that did;
+    a state that could not be made a stable minimum is flagged (stable = 0) and said on
+    stderr."""
     out = {k: st.info[k] for k in STABILITY_KEYS if k in st.info}
+    if "dphi_virial_ok" in out:
+        out["dphi_virial_ok"] = np.int8(out["dphi_virial_ok"])
+        if not out["dphi_virial_ok"]:
+            label_dphi = st.pack.phi - st.info["phi_c"]
+            _warn(f"{label}: its own contact network puts it at dphi = "
+                  f"{st.info['dphi_virial']:.2e} from jamming (virial relation), not "
+                  f"phi - phi_c = {label_dphi:.2e} (tolerance "
+                  f"{virial_tolerance(label_dphi):.0%}): it re-jammed at another phi_c on the "
+                  f"way (dphi_virial_ok = 0 in /observables)")
     if "stable" in out:
         out["stable"] = np.int8(out["stable"])
         if not out["stable"]:
-            _warn(f"{label}: not a stable minimum after {st.info['escapes']} escape(s) from its "
-                  f"saddle ({st.info['negative_curvatures']} negative curvature(s) of the full "
+            _warn(f"{label}: not a stable minimum after {st.info['escapes']} escape(s) and "
+                  f"{st.info.get('cycles', 0)} compression cycle(s) from its saddle "
+                  f"({st.info['negative_curvatures']} negative curvature(s) of the full "
                   f"Hessian): written with stable = 0 in /observables")
     return out
 
@@ -163,13 +227,24 @@ def member_checkpoint(args, member, comm, progress, run_params):
     return ck
 
 
+class MemberIncomplete(UnjammedError):
+    """A member's ladder (or target pressures) unjammed at one step: the jammed states before
+    it are written; ``rows`` are their summary rows (group rank 0)."""
+
+    def __init__(self, message, rows):
+        super().__init__(message, collective=False)
+        self.rows = rows
+
+
 def pack_member(args, member, comm, progress, run_params=None):
     """Compute, write (group rank 0) and summarise the states of one ensemble member; then its
     manifest record (parjam.manifest), so that a restarted run skips it.  ``args`` is the
-    member's parjam.protocol.PackingProtocol (from ``parjam pack`` or a scene)."""
+    member's parjam.protocol.PackingProtocol (from ``parjam pack`` or a scene).  Where a step
+    of its ladder unjams, the jammed states before it are written and MemberIncomplete (an
+    UnjammedError) is raised after them, without the manifest record."""
     t0 = time.time()
     ck = member_checkpoint(args, member, comm, progress, run_params)
-    states, protocol, totals = member_states(args, member, comm, progress, ck)
+    states, protocol, totals, stopped = member_states(args, member, comm, progress, ck)
     rows = []
     paths = []
     for st in states:
@@ -202,6 +277,13 @@ def pack_member(args, member, comm, progress, run_params=None):
             rows.append({"member": member, "state": st.label, "file": path, **net.summary(),
                          "phi_c": st.info.get("phi_c", np.nan),
                          "stable": int(st.info.get("stable", 1))})
+    if stopped is not None:
+        # the jammed states are written, but the member is not finished: no manifest record
+        # (a rerun recomputes it, from its checkpoint if any) and an UnjammedError (exit 3)
+        raise MemberIncomplete(f"member {member}: {stopped}; its {len(states)} jammed "
+                               f"state(s) before that step are written "
+                               f"(ladder_unjammed_at = {stopped.step:.1e} in /observables)",
+                               rows)
     if run_params is not None:
         outputs.on_root(comm, lambda: manifest.write_member_record(args.out, member, paths,
                                                                    run_params))

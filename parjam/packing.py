@@ -43,6 +43,8 @@ REFINE_RATIO = 30.0
 PHI_C_ROUNDOFF = 8.0 * np.finfo(np.float64).eps
 RESOLVED_FRACTION = 0.05  # a dphi is resolved when phi_c is known to 5 % of it
 MAX_ESCAPES = 6  # saddle escapes (softest direction, then minimisation) per state
+# where those fail: compression cycles to these multiples of the state's dphi and back
+CYCLE_FACTORS = (10.0, 100.0)
 # a returned state is force-balanced to REL_BALANCE of its mean contact force (tighter than
 # --ftol near jamming: at dphi = 1e-10 contact forces are ~3e-11), but not below the round-off
 # floor FORCE_FLOOR * (mean contact stiffness) of the forces
@@ -95,6 +97,17 @@ def spatial_order(pos, L, cell):
     for k in range(pos.shape[1]):
         key = key * m + idx[:, k]
     return np.argsort(key, kind="stable")
+
+
+class LadderUnjammed(UnjammedError):
+    """A step of the dphi ladder (or of the target pressures) unjammed: ``states`` are the
+    jammed states made before it, ``step`` the dphi (or pressure) that unjammed.  The steps
+    after it are not attempted (their phi_c would be another configuration's)."""
+
+    def __init__(self, message, states, step):
+        super().__init__(message, collective=False)
+        self.states = list(states)
+        self.step = step
 
 
 @dataclass
@@ -208,59 +221,106 @@ class Jammer:
     def state(self, res, label, **info):
         return State(self.pack.copy(), res, label, info)
 
-    def stable_state(self, res, label, e_stop=-np.inf, **info):
+    def stable_state(self, res, label, e_stop=-np.inf, phi=None, **info):
         """The State of the current minimum after ``stabilise``; its info records the check."""
-        res, check = self.stabilise(res, e_stop)
+        res, check = self.stabilise(res, e_stop, phi)
         return State(self.pack.copy(), res, label, {**info, **check})
 
-    def stabilise(self, res, e_stop=-np.inf):
-        """Make the current minimum a stable one (parjam.stability): while the full Hessian of
-        the non-rattlers has a negative curvature, or Nc < Nc_iso, move the packing out of the
-        saddle along its softest direction (``stability.escape_candidates``: to where the first
-        new contact closes, on either side, or to the lowest energy along it) and minimise
-        again; the first candidate that is stable is kept, else the search goes on from the
-        last one, at most MAX_ESCAPES minimisations.  Returns the last MinResult and the record
-        {"negative_curvatures_found", "excess_found", "escapes", "negative_curvatures",
-        "stable", "curvature_shift", "lowest_curvature_found"}; a state that stays unstable is
-        returned flagged (stable = 0), never dropped."""
+    def stabilise(self, res, e_stop=-np.inf, phi=None):
+        """Make the current minimum (at volume fraction ``phi``, default the current one) a
+        stable one (parjam.stability): while the full Hessian of the non-rattlers has a negative
+        curvature, or Nc < Nc_iso, move the packing out of the saddle along its softest
+        direction (``escape``); where that fails, a compression cycle (``compression_cycle``,
+        factors CYCLE_FACTORS in turn, each followed by the directional escapes again).
+        Bounded and deterministic in the positions, so a run resumed from a checkpoint repeats
+        it.  Returns the last MinResult and the record {"negative_curvatures_found",
+        "excess_found", "escapes", "cycles", "negative_curvatures", "stable",
+        "curvature_shift", "lowest_curvature_found"}; a state that stays unstable is returned
+        flagged (stable = 0), never dropped: the state the directional escapes left (a failed
+        cycle is undone)."""
         with log_stage("pack: stability"):
+            phi = self.pack.phi if phi is None else phi
             net = analyze(self.pack)
             tol = self.balance_tol(net)
             if res.ok and net.max_force > tol:
                 res = self.polish(res, tol)
                 net = analyze(self.pack)
-            cur = first = stability.check(self.comm, self.pack, net)
-            lowest, escapes = np.nan, 0
-            while not cur.stable and escapes < MAX_ESCAPES and cur.n_active > 0:
-                direction, lam = stability.softest_direction(self.comm, self.pack, cur, net)
-                lowest = lam if escapes == 0 else lowest
-                if direction is None:
+            first = stability.check(self.comm, self.pack, net)
+            res, cur, escapes, lowest = self.escape(res, first, net, e_stop)
+            cycles = 0
+            for factor in CYCLE_FACTORS:
+                if cur.stable or res.status == "unjammed" or cur.n_active == 0:
                     break
-                self._log(f"saddle: {cur.n_negative} negative curvature(s) (lowest {lam:.2e}), "
-                          f"Nc - Nc_iso = {cur.excess}: escape {escapes + 1}")
-                candidates = stability.escape_candidates(self.pack, direction)
-                for pos in candidates[:MAX_ESCAPES - escapes]:
-                    self.pack.pos = pos
-                    self.ff.set_positions(pos)
-                    res = self.relax(None, e_stop)
-                    if res.ok:
-                        res = self.polish(res, self.balance_tol(analyze(self.pack)))
-                    escapes += 1
-                    if res.status == "unjammed":
-                        break
-                    net = analyze(self.pack)
-                    cur = stability.check(self.comm, self.pack, net)
-                    if cur.stable:
-                        break
-                if res.status == "unjammed":
-                    break
+                kept = (self.pack.copy(), res, cur)
+                cycles += 1
+                res, cur = self.compression_cycle(phi, factor, e_stop)
+                if not cur.stable and res.status != "unjammed" and cur.n_active > 0:
+                    res, cur, more, _ = self.escape(res, cur, analyze(self.pack), e_stop)
+                    escapes += more
+                if not cur.stable:  # undo the cycle: the flagged state is the escapes' one
+                    self.pack, res, cur = kept
+                    self.pack = self.pack.copy()
+                    self._set_state(self.pack.pos, self.pack.L)
         if not cur.stable:
-            self._log(f"state still unstable after {escapes} escape(s): {cur.n_negative} "
-                      f"negative curvature(s), Nc - Nc_iso = {cur.excess}")
+            self._log(f"state still unstable after {escapes} escape(s) and {cycles} compression "
+                      f"cycle(s): {cur.n_negative} negative curvature(s), Nc - Nc_iso = "
+                      f"{cur.excess}")
         return res, {"negative_curvatures_found": first.n_negative,
-                     "excess_found": first.excess, "escapes": escapes,
+                     "excess_found": first.excess, "escapes": escapes, "cycles": cycles,
                      "negative_curvatures": cur.n_negative, "stable": int(cur.stable),
                      "curvature_shift": cur.shift, "lowest_curvature_found": lowest}
+
+    def escape(self, res, cur, net, e_stop=-np.inf):
+        """Leave a saddle along its softest direction (``stability.escape_candidates``: to where
+        the first new contact closes, on either side, or to the lowest energy along it) and
+        minimise again; the first candidate that is stable is kept, else the search goes on
+        from the last one, at most MAX_ESCAPES minimisations.  Returns (MinResult, Curvature,
+        escapes, lowest curvature found)."""
+        lowest, escapes = np.nan, 0
+        while not cur.stable and escapes < MAX_ESCAPES and cur.n_active > 0:
+            direction, lam = stability.softest_direction(self.comm, self.pack, cur, net)
+            lowest = lam if escapes == 0 else lowest
+            if direction is None:
+                break
+            self._log(f"saddle: {cur.n_negative} negative curvature(s) (lowest {lam:.2e}), "
+                      f"Nc - Nc_iso = {cur.excess}: escape {escapes + 1}")
+            candidates = stability.escape_candidates(self.pack, direction)
+            for pos in candidates[:MAX_ESCAPES - escapes]:
+                self.pack.pos = pos
+                self.ff.set_positions(pos)
+                res = self.relax(None, e_stop)
+                if res.ok:
+                    res = self.polish(res, self.balance_tol(analyze(self.pack)))
+                escapes += 1
+                if res.status == "unjammed":
+                    break
+                net = analyze(self.pack)
+                cur = stability.check(self.comm, self.pack, net)
+                if cur.stable:
+                    break
+            if res.status == "unjammed":
+                break
+        return res, cur, escapes, lowest
+
+    def compression_cycle(self, phi, factor, e_stop=-np.inf):
+        """Compress the state at volume fraction ``phi`` to ``factor`` times its distance to
+        jamming (its virial dphi, ``virial_dphi``), minimise, decompress back to ``phi`` and
+        minimise (to the balance of ``relax_balanced``): the compressed network closes the
+        near-contacts that left the state a saddle, and keeps them on the way back where the
+        directional escapes could not find them (measured: N = 1024, dphi = 1e-9 .. 1e-8,
+        docs/reliability.md).  Returns (MinResult, Curvature) at ``phi``."""
+        dphi = self.virial_dphi()
+        self._log(f"compression cycle: to {factor:g} x dphi = {factor * dphi:.2e} and back")
+        self.relax(phi + (factor - 1.0) * dphi)
+        res = self.relax_balanced(phi, e_stop)
+        if res.status == "unjammed":
+            return res, stability.Curvature(-1, 0.0, 0, 0)
+        return res, stability.check(self.comm, self.pack, analyze(self.pack))
+
+    def virial_dphi(self):
+        """phi - phi_c of the current state by the virial relation of its own contact network,
+        alpha E phi / (p V) (O'Hern et al. 2003)."""
+        return self._virial_excess(analyze(self.pack).energy)
 
     def relax_balanced(self, phi=None, e_stop=-np.inf):
         """``relax``, then on to ``balance_tol`` where --ftol is loose against the contact forces
@@ -317,8 +377,8 @@ class Jammer:
                 raise ParjamError(f"minimisation did not converge at phi = {phi:.10f} "
                                   f"(max|F| = {res.fmax:.2e})", collective=False)
             if s.e_low <= e <= s.e_high:
-                return self.stable_state(res, "phi_c", phi_c=phi, phi_bisection=phi,
-                                         iterations=it)
+                return self.stable_state(res, "phi_c", phi=phi, phi_c=phi,
+                                         phi_bisection=phi, iterations=it)
             if e < s.e_low:
                 lo = phi
                 phi = phi + step if np.isinf(hi) else 0.5 * (lo + hi)
@@ -456,7 +516,7 @@ class Jammer:
         if not res.ok:
             raise ParjamError(f"minimisation did not converge at phi = {phi:.10f} "
                               f"(max|F| = {res.fmax:.2e})", collective=False)
-        return self.stable_state(res, label, e_stop, **info)
+        return self.stable_state(res, label, e_stop, phi=phi, **info)
 
     def energy_floor(self, dphi):
         """An energy far below that of a jammed state at phi_c + dphi (overlaps ~dphi / (2 d),
@@ -476,9 +536,14 @@ class Jammer:
         out = []
         for k, dphi in enumerate(order):
             self._log(f"dphi step {k + 1}/{len(order)}: dphi = {dphi:.1e}")
-            st = self.at_phi(phi_c + dphi, f"dphi{dphi:.1e}", e_stop=self.energy_floor(dphi),
-                             dphi=dphi, phi_c=phi_c, ladder=direction)
-            st.info["dphi_virial"] = self._virial_excess(st.result.energy)
+            try:
+                st = self.at_phi(phi_c + dphi, f"dphi{dphi:.1e}",
+                                 e_stop=self.energy_floor(dphi), dphi=dphi, phi_c=phi_c,
+                                 ladder=direction)
+                st.info["dphi_virial"] = self._virial_excess(st.result.energy)
+            except UnjammedError as exc:
+                raise LadderUnjammed(f"ladder step {k + 1} of {len(order)} (dphi = {dphi:.1e}) "
+                                     f"unjammed: {exc}", out, dphi) from None
             out.append(st)
         return out
 

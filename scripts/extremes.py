@@ -38,17 +38,24 @@ def member(d, n, seed, m, dphis, alpha):
     disp = "bi" if d == 2 else "mono"
     pack = random_packing(d, n, {2: 0.86, 3: 0.66}[d], alpha, disp, 1.4, member_rng(seed, m))
     jam = Jammer(PETSc.COMM_SELF, pack)
-    spent = {"stabilise": 0.0}
-    real = jam.stabilise
+    spent = {"stabilise": 0.0, "cycle": 0.0}
+    real, real_cycle = jam.stabilise, jam.compression_cycle
 
-    def timed(res, e_stop=-np.inf):
+    def timed(res, e_stop=-np.inf, phi=None):
         t = time.perf_counter()
         try:
-            return real(res, e_stop)
+            return real(res, e_stop, phi)
         finally:
             spent["stabilise"] += time.perf_counter() - t
 
-    jam.stabilise = timed
+    def timed_cycle(phi, factor, e_stop=-np.inf):
+        t = time.perf_counter()
+        try:
+            return real_cycle(phi, factor, e_stop)
+        finally:
+            spent["cycle"] += time.perf_counter() - t
+
+    jam.stabilise, jam.compression_cycle = timed, timed_cycle
     t0 = time.perf_counter()
     try:
         bis = jam.find_phi_c()
@@ -68,13 +75,14 @@ def member(d, n, seed, m, dphis, alpha):
                          "dphi_virial": st.info.get("dphi_virial", np.nan),
                          "p": net.pressure, "excess": net.excess, "max_force": net.max_force,
                          **{k: st.info[k] for k in ("stable", "negative_curvatures_found",
-                                                    "excess_found", "escapes",
+                                                    "excess_found", "escapes", "cycles",
                                                     "negative_curvatures") if k in st.info},
                      }.items()})
     return {"d": d, "n": n, "seed": seed, "member": m, "alpha": alpha, "phi_c": phi_c,
             "phi_bisection": bis.pack.phi, "offset": bis.pack.phi - phi_c,
             "resolution": found["phi_c_resolution"], "seconds": time.perf_counter() - t0,
-            "stabilise_seconds": spent["stabilise"], "states": rows}
+            "stabilise_seconds": spent["stabilise"], "cycle_seconds": spent["cycle"],
+            "states": rows}
 
 
 def run(args, dphis, plan):
@@ -85,7 +93,14 @@ def run(args, dphis, plan):
             fh.write(json.dumps(rec) + "\n")
             fh.flush()
             print(f"d={args.dim} N={n} seed={seed} member={m}: {time.time() - t:.1f} s, "
-                  f"offset {rec['offset']:.2e}, resolution {rec['resolution']:.1e}", flush=True)
+                  f"offset {rec['offset']:.2e}, resolution {rec['resolution']:.1e}, "
+                  f"stabilise {rec['stabilise_seconds']:.1f} s (cycles {rec['cycle_seconds']:.1f} s)",
+                  flush=True)
+            for s in rec["states"]:
+                print(f"  {s['state']}: found neg {s.get('negative_curvatures_found')} excess "
+                      f"{s.get('excess_found')} -> stable {s.get('stable')} excess {s['excess']} "
+                      f"escapes {s.get('escapes')} cycles {s.get('cycles')} dphi_virial "
+                      f"{s['dphi_virial']:.3e}", flush=True)
 
 
 def report(paths, img):
@@ -221,6 +236,8 @@ def main():
     ap.add_argument("--n", type=int, nargs="+", default=[64])
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--members", type=int, default=20)
+    ap.add_argument("--member-list", type=int, nargs="+",
+                    help="census: only these members (e.g. the ones an earlier census flagged)")
     ap.add_argument("--alpha", type=float, default=2.0)
     ap.add_argument("--dphi", type=float, nargs="+")
     ap.add_argument("--out", default="bench-out/extremes.jsonl")
@@ -237,10 +254,12 @@ def main():
     env.init()
     if args.mode == "pdphi":
         dphis = args.dphi or [10.0 ** -k for k in range(10, 0, -1)]
-        plan = [(n, seed, 0) for n in args.n for seed in range(args.seeds)]
+        seeds = args.member_list or range(args.seeds)  # pdphi: --member-list picks seeds
+        plan = [(n, seed, 0) for n in args.n for seed in seeds]
     else:
         dphis = args.dphi or [1e-9, 1e-8, 1e-6]
-        plan = [(n, 2005, m) for n in args.n for m in range(args.members)]
+        members = args.member_list or range(args.members)
+        plan = [(n, 2005, m) for n in args.n for m in members]
     run(args, dphis, plan)
     return 0
 

@@ -109,17 +109,18 @@ def test_saddle_detected_and_relaxed(ladder, world):
 
 
 def test_unstabilisable_state_is_flagged_not_dropped(ladder, world, monkeypatch):
-    """With no escape allowed, the saddle comes back flagged (stable = 0), and a member whose
-    state is flagged is written with the flag in /observables and counted by the summary."""
+    """With no escape and no compression cycle allowed, the saddle comes back flagged
+    (stable = 0)."""
     d, (phi_c, packs) = ladder
     saddle = saddle_from(packs[1])
     monkeypatch.setattr(packing, "MAX_ESCAPES", 0)
+    monkeypatch.setattr(packing, "CYCLE_FACTORS", ())
     jam = Jammer(world, saddle)  # no minimisation: the checks only, on every rank
     try:
         st = jam.stable_state(MinResult("converged", 0.0, 0.0), "saddle")
     finally:
         jam.destroy()
-    assert st.info["stable"] == 0 and st.info["escapes"] == 0
+    assert st.info["stable"] == 0 and st.info["escapes"] == 0 and st.info["cycles"] == 0
     assert st.info["negative_curvatures"] >= 1 and st.info["excess_found"] < 0
 
 
@@ -133,8 +134,8 @@ def test_flagged_member_written_and_counted(tmp_path, monkeypatch, capsys):
 
     real = Jammer.stabilise
 
-    def failing(self, res, e_stop=-np.inf):
-        res, info = real(self, res, e_stop)
+    def failing(self, res, *a):
+        res, info = real(self, res, *a)
         if abs(self.pack.phi - getattr(self, "_phi_c_test", 0.0)) < 2e-6:
             info["stable"] = 0
         return res, info
@@ -197,3 +198,89 @@ def test_energy_window_cli_refused(tmp_path):
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1 and "round-off" in r.stderr
     assert not out.exists()
+
+
+def test_compression_cycle_stabilises_where_the_escapes_cannot(ladder, monkeypatch):
+    """With the directional escapes switched off (MAX_ESCAPES = 0), the constructed saddle is
+    made a stable minimum by the compression cycle (to 10x its dphi and back), at the same
+    volume fraction and pressure; the cycle is deterministic (a resumed run repeats it)."""
+    d, (phi_c, packs) = ladder
+    stable = packs[1]  # dphi = 1e-8
+    saddle = saddle_from(stable)
+    monkeypatch.setattr(packing, "MAX_ESCAPES", 0)
+    runs = []
+    for _ in range(2):
+        jam = Jammer(PETSc.COMM_SELF, saddle)  # (a shared FIRE run costs minutes on 2 ranks)
+        try:
+            res, info = jam.stabilise(MinResult("converged", 0.0, 0.0), phi=saddle.phi)
+        finally:
+            jam.destroy()
+        runs.append((jam.pack, info))
+    (pack, info), (again, _) = runs
+    assert info["negative_curvatures_found"] >= 1 and info["excess_found"] < 0
+    assert info["escapes"] == 0 and info["cycles"] >= 1 and info["stable"] == 1
+    after = network.analyze(pack)
+    assert after.excess >= 0
+    assert _dense_negatives(pack, info["curvature_shift"]) == 0
+    assert pack.phi == pytest.approx(saddle.phi, rel=1e-14)
+    assert after.pressure == pytest.approx(network.analyze(stable).pressure, rel=0.05)
+    np.testing.assert_array_equal(pack.pos, again.pos)
+
+
+def test_virial_dphi_disagreeing_with_the_label_is_flagged(ladder, capsys):
+    """Every ladder state's own virial dphi agrees with its label; a state whose phi_c is not
+    the one its network jams at (here: labelled 1e-4, really 1e-6 from jamming, as a state
+    that re-jammed on the way) is recorded with dphi_virial_ok = 0 and said in one line."""
+    from parjam import ensemble
+
+    d, (phi_c, packs) = ladder
+    states = [packing.State(p, MinResult("converged", 0.0, 0.0), f"dphi{dphi:.1e}",
+                            {"phi_c": phi_c}) for dphi, p in zip(DPHIS, packs)]
+    off = packing.State(packs[-1], MinResult("converged", 0.0, 0.0), "dphi1.0e-04",
+                        {"phi_c": packs[-1].phi - 1e-4})
+    ensemble.virial_flags(states + [off])
+    for dphi, st in zip(DPHIS, states):
+        assert st.info["dphi_virial_ok"] == 1
+        assert st.info["dphi_virial"] == pytest.approx(dphi, rel=0.02)
+    assert off.info["dphi_virial_ok"] == 0
+    assert off.info["dphi_virial"] == pytest.approx(1e-6, rel=0.02)
+    capsys.readouterr()
+    obs = ensemble.stability_observables(off, "member 0 dphi1.0e-04")
+    err = capsys.readouterr().err
+    assert obs["dphi_virial_ok"] == 0 and err.count("\n") == 1
+    assert "re-jammed at another phi_c" in err and "1.00e-06" in err
+
+
+def test_unjammed_ladder_step_keeps_the_jammed_states(shared_tmp, monkeypatch, capsys):
+    """A ladder step that unjams (here: its energy floor raised above any jammed state, through
+    the public Jammer.energy_floor) ends the member's ladder there: the states before it are
+    written, each with ladder_unjammed_at in /observables; no manifest record (a rerun
+    recomputes the member); parjam pack exits 3 and names the step in one line per member."""
+    from mpi4py import MPI
+
+    from parjam import cli, manifest
+
+    real = Jammer.energy_floor
+    monkeypatch.setattr(Jammer, "energy_floor",
+                        lambda self, dphi: np.inf if dphi >= 1e-3 else real(self, dphi))
+    out = os.path.join(shared_tmp, "unjam")
+    rc = cli.main(["pack", "--dim", "3", "--n", "32", "--seed", "1", "--members", "2",
+                   "--dphi", "1e-6", "1e-3", "1e-2", "--checkpoint-every", "0", "-q",
+                   "--out", out])
+    assert rc == 3
+    err = capsys.readouterr().err
+    if MPI.COMM_WORLD.Get_rank() == 0:
+        lines = [x for x in err.splitlines() if x.startswith("parjam: error:")]
+        assert len(lines) == 2 and all("dphi = 1.0e-03" in x and "unjammed" in x
+                                       for x in lines)
+        for m in (0, 1):
+            files = sorted(os.listdir(out))
+            assert f"member{m:04d}_phi_c.h5" in files and f"member{m:04d}_dphi1.0e-06.h5" in files
+            assert not any(f.startswith(f"member{m:04d}_dphi1.0e-0{k}") for k in (2, 3)
+                           for f in files)
+            with h5py.File(os.path.join(out, f"member{m:04d}_dphi1.0e-06.h5"), "r") as f:
+                assert io.observable(f, "ladder_unjammed_at") == pytest.approx(1e-3)
+                assert io.observable(f, "stable") == 1
+        assert not os.path.exists(manifest.record_path(out, 0))
+        assert not os.path.exists(manifest.record_path(out, 1))
+        assert manifest.load(out)["members"] == {}

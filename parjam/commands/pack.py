@@ -7,7 +7,7 @@ import sys
 
 import numpy as np
 
-from parjam.errors import ParjamError
+from parjam.errors import ParjamError, UnjammedError
 from parjam.packing import DISPERSITIES
 from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DPHI, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
                              DEFAULT_PHI_START, DEFAULT_RATIO, LADDERS, PHIC_METHODS,
@@ -222,7 +222,7 @@ def run(args):
 def _run(args):
     validate(args)
     from parjam import env, manifest, outputs
-    from parjam.ensemble import pack_member, print_table, rows_from_files
+    from parjam.ensemble import MemberIncomplete, pack_member, print_table, rows_from_files
     from parjam.progress import Progress, Relay
 
     PETSc = env.petsc()
@@ -253,15 +253,21 @@ def _run(args):
                  f"{args.out} (skipped)")
     todo = [m for m in range(args.members) if m not in done]
     comm, mine = member_groups(world, args.members, todo)
-    rows = []
+    rows, incomplete = [], []
     stage = PETSc.Log.Stage("parjam pack")
     stage.push()
     for m in mine:
-        rows += pack_member(protocol, m, comm,
-                            progress.group(comm, f"member {m} of {args.members}: "), params)
+        try:
+            rows += pack_member(protocol, m, comm,
+                                progress.group(comm, f"member {m} of {args.members}: "), params)
+        except MemberIncomplete as exc:  # its jammed states are written; the others go on
+            rows += exc.rows
+            if comm.getRank() == 0:
+                incomplete.append(str(exc))
     stage.pop()
     relay.close()
     all_rows = mpi.gather(rows, root=0)
+    incomplete = mpi.gather(incomplete, root=0)
     if world.getRank() == 0:
         from parjam import checkpoint
 
@@ -271,4 +277,9 @@ def _run(args):
         for m, files in sorted(done.items()):
             all_rows.append(rows_from_files(args.out, m, files))
         print_table([r for part in all_rows for r in part])
-    return 0
+        incomplete = [line for part in incomplete for line in part]
+        for line in incomplete:
+            print(f"parjam: error: {line}", file=sys.stderr, flush=True)
+    # exit 3 (unjammed) when any member's ladder stopped early, though its jammed states are
+    # written: the run did not deliver every state it was asked for (docs/reliability.md)
+    return UnjammedError.exit_code if mpi.bcast(bool(incomplete), root=0) else 0
