@@ -15,10 +15,13 @@ fixed contact network is applied again to states decompressed towards phi_c, unt
 estimates (from states at decreasing dphi) agree; their difference is the resolution of phi_c,
 recorded with every state.  Every returned state is also checked to be a stable minimum
 (parjam.stability) and, where it is a saddle, pushed out of it along its softest direction and
-minimised again (``stabilise``).
+minimised again, or else taken through a compression cycle (``stabilise``).  A ladder step that
+unjams ends the ladder with ``LadderUnjammed``, which carries the jammed states made before it.
 
-(Over 500 lines: the Jammer is one state machine over one force field and its checkpoint; the
-stability test itself and the escape searches live in parjam.stability.)
+(Over 500 lines: the Jammer is one state machine over one force field and its checkpoint; every
+minimisation, the escapes' and the cycles' included, goes through its checkpointed ``relax``, so
+they are its methods; the stability test itself and the escape searches live in
+parjam.stability.)
 """
 
 from dataclasses import dataclass, field

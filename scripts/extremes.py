@@ -94,7 +94,8 @@ def run(args, dphis, plan):
             fh.flush()
             print(f"d={args.dim} N={n} seed={seed} member={m}: {time.time() - t:.1f} s, "
                   f"offset {rec['offset']:.2e}, resolution {rec['resolution']:.1e}, "
-                  f"stabilise {rec['stabilise_seconds']:.1f} s (cycles {rec['cycle_seconds']:.1f} s)",
+                  f"stabilise {rec['stabilise_seconds']:.1f} s "
+                  f"(cycles {rec['cycle_seconds']:.1f} s)",
                   flush=True)
             for s in rec["states"]:
                 print(f"  {s['state']}: found neg {s.get('negative_curvatures_found')} excess "
@@ -130,8 +131,9 @@ def report(paths, img):
         print("\nCells: mean of p/dphi^(alpha-1) relative to its value at 1e-6, in %, and in "
               "brackets the largest deviation of a member.\n")
         print("| d | N | members | bisection offset (mean) | old label error at 1e-8 | "
-              "resolution of phi_c (max) | unstable states (found -> after) | s / member |")
-        print("|---|---|---|---|---|---|---|---|")
+              "resolution of phi_c (max) | unstable states (found -> after) | compression "
+              "cycles | virial dphi off its label (flagged) | s / member |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
         for d, n, a in keys:
             group = [r for r in pd if (r["d"], r["n"], r["alpha"]) == (d, n, a)]
             off = np.mean([r["offset"] for r in group])
@@ -140,15 +142,20 @@ def report(paths, img):
                         for r in group for s in r["states"])
             after = sum(not s.get("stable", 1) for r in group for s in r["states"])
             sec = np.mean([r["seconds"] for r in group])
+            cyc = sum(s.get("cycles", 0) for r in group for s in r["states"])
+            off_label = [f"seed {r['seed']} {s['dphi_label']:.0e}: {s['dphi_virial']:.2e}"
+                         for r in group for s in r["states"][1:] if virial_off(s)]
             print(f"| {d} | {n} | {len(group)} | {off:.2e} | x{1 + off / 1e-8:.1f} | {res:.1e} "
-                  f"| {found} -> {after} | {sec:.0f} |")
+                  f"| {found} -> {after} | {cyc} | {'; '.join(off_label) or 'none'} "
+                  f"| {sec:.0f} |")
         if img:
             plot(pd, img)
     if cs:
         print("\n### Stability census\n")
         print("| d | N | dphi | members | negative curvature found | Nc < Nc_iso found | "
-              "unstable after | Nc - Nc_iso after (min..max) | escapes (total) |")
-        print("|---|---|---|---|---|---|---|---|---|")
+              "unstable after | Nc - Nc_iso after (min..max) | escapes (total) | "
+              "compression cycles (total) | virial dphi off its label |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
         keys = sorted({(r["d"], r["n"]) for r in cs})
         for d, n in keys:
             group = [r for r in cs if (r["d"], r["n"]) == (d, n)]
@@ -159,12 +166,35 @@ def report(paths, img):
                       f"{sum(s['negative_curvatures_found'] > 0 for s in ss)} | "
                       f"{sum(s['excess_found'] < 0 for s in ss)} | "
                       f"{sum(not s['stable'] for s in ss)} | {min(ex)}..{max(ex)} | "
-                      f"{sum(s['escapes'] for s in ss)} |")
+                      f"{sum(s['escapes'] for s in ss)} | {sum(s.get('cycles', 0) for s in ss)} "
+                      f"| {sum(virial_off(s) for s in ss)} |")
             tot = np.array([r["seconds"] for r in group])
             stab = np.array([r["stabilise_seconds"] for r in group])
+            cyc = np.array([r.get("cycle_seconds", 0.0) for r in group])
             print(f"\nd = {d}, N = {n}: {np.mean(tot):.1f} s per member in all, of which "
                   f"{np.mean(stab):.2f} s ({100 * np.sum(stab) / np.sum(tot):.1f} %) in the "
-                  f"stability checks and escapes (max {np.max(stab):.2f} s)\n")
+                  f"stability checks and escapes (max {np.max(stab):.2f} s), compression "
+                  f"cycles {np.sum(cyc):.1f} s in all (max {np.max(cyc):.1f} s per member)\n")
+            print("| member | " + " | ".join(f"Nc - Nc_iso found -> after at {x:.0e}" for x in
+                                               sorted({s["dphi_label"] for r in group
+                                                       for s in r["states"][1:]}))
+                  + " | check + escapes + cycles (s) | member (s) |")
+            print("|---" * (3 + len(group[0]["states"][1:])) + "|")
+            for r in sorted(group, key=lambda r: r["member"]):
+                cells = [f"{s['excess_found']} -> {s['excess']}"
+                         + ("" if s["stable"] else " UNSTABLE")
+                         + (f" ({s['cycles']} cycle(s))" if s.get("cycles") else "")
+                         for s in sorted(r["states"][1:], key=lambda s: s["dphi_label"])]
+                print(f"| {r['member']} | " + " | ".join(cells)
+                      + f" | {r['stabilise_seconds']:.1f} | {r['seconds']:.0f} |")
+
+
+def virial_off(s):
+    """The state's own virial dphi disagrees with its label (parjam.ensemble.virial_flags)."""
+    from parjam.ensemble import virial_tolerance
+
+    x, v = s["dphi_label"], s.get("dphi_virial", np.nan)
+    return bool(np.isfinite(v) and abs(v - x) > virial_tolerance(x) * x)
 
 
 def census_files(paths):
