@@ -32,7 +32,7 @@ import numpy as np
 def member(d, n, seed, m, dphis, alpha):
     from parjam import env
     from parjam.network import analyze
-    from parjam.packing import Jammer, member_rng, random_packing
+    from parjam.packing import Jammer, LadderUnjammed, member_rng, random_packing
 
     PETSc = env.petsc()
     disp = "bi" if d == 2 else "mono"
@@ -61,7 +61,12 @@ def member(d, n, seed, m, dphis, alpha):
         bis = jam.find_phi_c()
         found = jam.refine_phi_c(min(dphis))
         phi_c = found["phi_c"]
-        states = jam.ladder(phi_c, dphis)
+        unjammed_at = None
+        try:
+            states = jam.ladder(phi_c, dphis)
+        except LadderUnjammed as exc:  # kept, as parjam pack keeps them
+            states, unjammed_at = exc.states, exc.step
+            print(f"  {exc}", flush=True)
     finally:
         jam.destroy()
     rows = []
@@ -81,6 +86,7 @@ def member(d, n, seed, m, dphis, alpha):
     return {"d": d, "n": n, "seed": seed, "member": m, "alpha": alpha, "phi_c": phi_c,
             "phi_bisection": bis.pack.phi, "offset": bis.pack.phi - phi_c,
             "resolution": found["phi_c_resolution"], "seconds": time.perf_counter() - t0,
+            "unjammed_at": unjammed_at,
             "stabilise_seconds": spent["stabilise"], "cycle_seconds": spent["cycle"],
             "states": rows}
 
@@ -90,6 +96,7 @@ def run(args, dphis, plan):
         for n, seed, m in plan:
             t = time.time()
             rec = member(args.dim, n, seed, m, dphis, args.alpha)
+            rec["mode"] = args.mode
             fh.write(json.dumps(rec) + "\n")
             fh.flush()
             print(f"d={args.dim} N={n} seed={seed} member={m}: {time.time() - t:.1f} s, "
@@ -106,8 +113,8 @@ def run(args, dphis, plan):
 
 def report(paths, img):
     recs = [json.loads(line) for p in paths for line in open(p) if line.strip()]
-    pd = [r for r in recs if len(r["states"]) > 6]
-    cs = [r for r in recs if len(r["states"]) <= 6]
+    pd = [r for r in recs if r.get("mode", "pdphi" if len(r["states"]) > 6 else "") == "pdphi"]
+    cs = [r for r in recs if r not in pd]
     if pd:
         print("### p / dphi against dphi (ensemble mean +- spread over members; relative to "
               "its dphi = 1e-6 value)\n")
@@ -123,10 +130,13 @@ def report(paths, img):
                 for r in group:
                     ref = [s for s in r["states"] if s["dphi_label"] == 1e-6][0]
                     c6 = ref["p"] / 1e-6 ** (a - 1)
-                    s = [s for s in r["states"] if s["dphi_label"] == x][0]
-                    rel.append(s["p"] / x ** (a - 1) / c6 - 1.0)
+                    s = [s for s in r["states"] if s["dphi_label"] == x]
+                    if s:  # else the ladder unjammed before this step
+                        rel.append(s[0]["p"] / x ** (a - 1) / c6 - 1.0)
                 rel = np.array(rel)
-                cells.append(f"{100 * rel.mean():+.2f}% ({100 * np.abs(rel).max():.2f})")
+                lost = len(group) - len(rel)
+                cells.append((f"{100 * rel.mean():+.2f}% ({100 * np.abs(rel).max():.2f})"
+                              if len(rel) else "") + (f" [{lost} unjammed]" if lost else ""))
             print(f"| {d} | {n} | {a:g} | {len(group)} | " + " | ".join(cells) + " |")
         print("\nCells: mean of p/dphi^(alpha-1) relative to its value at 1e-6, in %, and in "
               "brackets the largest deviation of a member.\n")
