@@ -6,6 +6,7 @@ import os
 import numpy as np
 
 from parjam.errors import ParjamError
+from parjam.softmodes import COLUMNS_DEFAULT, COLUMNS_MAX
 
 
 def add_parser(sub):
@@ -31,6 +32,11 @@ def add_parser(sub):
     p.add_argument("--basis", choices=["block", "krylov"], default="block",
                    help="null-space method: block inverse iteration with one MUMPS factor "
                    "(block, default) or SLEPc Krylov-Schur shift-and-invert (krylov)")
+    p.add_argument("--columns", type=int, default=COLUMNS_DEFAULT, metavar="K",
+                   help="block basis: find the null vectors K columns at a time, so a cut holds "
+                   "one copy of the basis plus O(N K) work arrays instead of several N x q ones "
+                   f"(1..{COLUMNS_MAX}; K above the null-space dimension is the single-block "
+                   "method)")
     p.add_argument("--vectors", action="store_true",
                    help="also store the basis (/softmodes/basis, modes x N x d)")
     p.add_argument("--allow-hyperstatic", action="store_true",
@@ -47,6 +53,8 @@ def validate(args):
         raise ParjamError(f"--bins must lie in [2, 100000], got {args.bins}")
     if args.subdivide is not None and not (1 <= args.subdivide <= 1000):
         raise ParjamError(f"--subdivide must lie in [1, 1000], got {args.subdivide}")
+    if not (1 <= args.columns <= COLUMNS_MAX):
+        raise ParjamError(f"--columns must lie in [1, {COLUMNS_MAX}], got {args.columns}")
     if not args.cut and args.subdivide is None:
         raise ParjamError("no cut given: use --cut AXIS=FRACTION (e.g. --cut x=0.5) and/or "
                           "--subdivide M")
@@ -84,13 +92,13 @@ def run(args):
     cs = sm.prepare(pack, planes_from(args, pack.d), args.allow_hyperstatic)
     progress(f"N' = {cs.n} non-rattlers, Nc = {len(cs.contacts)} ({cs.excess:+d} from "
              f"isostatic), q = {cs.q} cut contacts on {len(cs.planes)} plane(s)")
-    res = sm.analyze(comm, cs, args.e0, args.bins, progress, args.basis)
+    res = sm.analyze(comm, cs, args.e0, args.bins, progress, args.basis, args.columns)
     res.solver["peak_rss_mb"] = peak_rss_mb(comm)
     prov = io.provenance(comm.getSize(), {
         "command": "softmodes", "input": os.path.abspath(args.packing),
         "input_sha256": io.sha256(args.packing) if comm.getRank() == 0 else "",
         "planes": [p.label for p in cs.planes], "e0": args.e0, "bins": args.bins,
-        "basis": args.basis,
+        "basis": args.basis, "columns": args.columns,
         "allow_hyperstatic": bool(args.allow_hyperstatic)})
     write(comm, args.out, res, args.vectors, prov)
     if comm.getRank() == 0:

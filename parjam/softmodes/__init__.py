@@ -1,0 +1,52 @@
+"""Soft modes after plane cuts (Wyart, Silbert, Nagel & Witten, PRE 72, 051306, Sections II-III
+and the Appendix): cut the contacts crossing planes, extract the null space of the rigidity
+matrix, measure how extended it is, and build the anomalous trial modes.
+
+One module per step, every step distributed over the ranks of ``comm`` (rows split as in
+:func:`parjam.hessian.row_range`, one particle per block of d rows):
+
+- :mod:`.cut` -- planes, the bonds crossing them (:func:`crossing`), the active network of the
+  packing (:func:`active_network`, rattlers removed) and the cut system (:func:`prepare`).
+- :mod:`.operators` -- M = S^T K S (Eq. 1 without the stress term) and S (Eq. 3).
+- :mod:`.counting` -- the null-space dimension by MUMPS inertia, d + q - 1 - (Nc - Nc_iso).
+- :mod:`.basis` -- the basis record and its Eq. 3 check; :mod:`.nullspace` -- block inverse
+  iteration in column blocks (``--columns``) and the gap; :mod:`.krylov` -- SLEPc.
+- :mod:`.linalg` -- distributed dense algebra on row-split column blocks.
+- :mod:`.observables` -- modulation g, extension, extended subspace, f(x) (Sec. III, Appendix);
+  :mod:`.trial` -- trial modes (Eq. rr) and omega_L (Eq. kkk).
+- :mod:`.analysis` -- the whole analysis; :mod:`.output` -- the HDF5 file.
+
+Dense references for tests live in :mod:`parjam.testing.softmodes_reference`.
+"""
+
+from parjam.errors import ParjamError
+from parjam.softmodes.analysis import SoftModes, analyze, characterise
+from parjam.softmodes.basis import (BASIS_METHODS, COLUMNS_DEFAULT, COLUMNS_MAX, NullBasis,
+                                    eq3_residual)
+from parjam.softmodes.counting import count_below, null_count, variational_count
+from parjam.softmodes.cut import (AXES, ActiveNetwork, CutSystem, Plane, active_network,
+                                  crossing, cut_masks, parse_cut, prepare, subdivision_planes)
+from parjam.softmodes.krylov import null_basis_krylov
+from parjam.softmodes.linalg import allmax, allreduce, gram, orthonormality_error, random_block
+from parjam.softmodes.nullspace import gap_above, null_basis, null_basis_block
+from parjam.softmodes.observables import (E0_LADDER, coordinate_from_plane, extended_basis,
+                                          extended_fraction, extension, gradient_bound,
+                                          localised_vectors, modulation, overlap_function,
+                                          overlap_without_localised, without_localised)
+from parjam.softmodes.operators import (relaxed_matrix, rigidity_matrix, stiffness_scale,
+                                        translation_columns, translations)
+from parjam.softmodes.output import gather_columns, write
+from parjam.softmodes.trial import energies, omega_L2, trial_modes
+
+__all__ = [
+    "AXES", "ActiveNetwork", "BASIS_METHODS", "COLUMNS_DEFAULT", "COLUMNS_MAX", "CutSystem",
+    "E0_LADDER", "NullBasis", "ParjamError", "Plane", "SoftModes", "active_network", "allmax",
+    "allreduce", "analyze", "characterise", "coordinate_from_plane", "count_below", "crossing",
+    "cut_masks", "energies", "eq3_residual", "extended_basis", "extended_fraction",
+    "extension", "gap_above", "gather_columns", "gradient_bound", "gram", "localised_vectors",
+    "modulation", "null_basis", "null_basis_block", "null_basis_krylov", "null_count",
+    "omega_L2", "orthonormality_error", "overlap_function", "overlap_without_localised",
+    "parse_cut", "prepare", "random_block", "relaxed_matrix", "rigidity_matrix",
+    "stiffness_scale", "subdivision_planes", "translation_columns", "translations",
+    "trial_modes", "variational_count", "without_localised", "write",
+]

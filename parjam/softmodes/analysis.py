@@ -1,0 +1,157 @@
+"""The whole soft-mode analysis of one cut packing (Wyart et al. 2005, Sections II-III and the
+Appendix): count (Sec. II), null-space basis (Eq. 3), extension and f(x) (Sec. III), trial modes
+(Eq. rr) against Eq. (kkk) and the variational count.  Solver-free: it drives the modules of
+:mod:`parjam.softmodes`."""
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from parjam import env
+from parjam.errors import ParjamError
+from parjam.softmodes.basis import COLUMNS_DEFAULT, eq3_residual
+from parjam.softmodes.counting import null_count, variational_count
+from parjam.softmodes.cut import CutSystem
+from parjam.softmodes.linalg import orthonormality_error
+from parjam.softmodes.nullspace import null_basis
+from parjam.softmodes.observables import (coordinate_from_plane, extended_basis,
+                                          extended_fraction, gradient_bound, modulation,
+                                          overlap_function, overlap_without_localised)
+from parjam.softmodes.operators import relaxed_matrix, rigidity_matrix, stiffness_scale
+from parjam.softmodes.trial import energies, omega_L2
+
+
+@dataclass(kw_only=True)
+class SoftModes:
+    """Everything ``parjam softmodes`` reports for one cut packing (replicated on every rank
+    except ``V``, this rank's rows of the extended basis)."""
+
+    cs: CutSystem
+    count: int  # null-space dimension, translations included
+    n_soft: int  # count - d: the basis size
+    V: np.ndarray  # rows lo..hi-1 of the basis that diagonalises G (columns by ascending e)
+    lo: int
+    hi: int
+    e: np.ndarray  # extension of each basis mode
+    rayleigh: np.ndarray  # <dR|M_cut|dR> of the null vectors (round-off)
+    gap: float  # first eigenvalue of M_cut above the null space (SLEPc), in units of k
+    eq3: float  # max |(dR_j - dR_i) . n_ij| over basis and remaining contacts
+    ortho: float  # max |V^T V - I|
+    overlap: np.ndarray  # (nbins, 3): x/L, f, f without the trivially localised modes
+    trial_energy: np.ndarray  # <dR*|M_uncut|dR*> per basis mode (nan where e ~ 0)
+    modulated_energy: np.ndarray  # <g dR|M_uncut|g dR> = e * trial energy, bounded by
+    #                               kappa z_max |grad g|^2 for every soft mode
+    e0: float
+    omega_L2: float  # Eq. (kkk) for e0
+    grad2: float
+    omega_t2: float  # mean trial energy of the q' modes with e > e0
+    n_below: int  # eigenmodes of the uncut M with omega^2 <= 2 omega_t^2 (translations included)
+    fractions: np.ndarray  # (k, 2): e0, q'/q
+    solver: dict = field(default_factory=dict)
+
+    @property
+    def q_prime(self):
+        return int(np.count_nonzero(self.e > self.e0))
+
+    @property
+    def c_bound(self):
+        """Lower bound of f (the paper's c ~ 0.6 in 3D)."""
+        return float(self.overlap[:, 1].min())
+
+    @property
+    def c_nontrivial(self):
+        """Lower bound of f once the trivially localised modes are projected out."""
+        return float(self.overlap[:, 2].min())
+
+    def summary(self):
+        cs = self.cs
+        ext = self.e > self.e0
+        return {
+            "N_active": cs.n, "Nc": len(cs.contacts), "excess": cs.excess, "q": cs.q,
+            "count": self.count, "expected": cs.expected if cs.isostatic else None,
+            "trivial": cs.trivial, "localised": cs.localised, "n_soft": self.n_soft,
+            "gap": self.gap, "eq3_residual": self.eq3, "orthonormality": self.ortho,
+            "e0": self.e0, "q_prime": self.q_prime, "q_prime_over_q": self.q_prime / cs.q,
+            "c": self.c_bound, "c_nontrivial": self.c_nontrivial, "omega_L2": self.omega_L2,
+            "trial_energy_max": float(np.max(self.trial_energy[ext])) if ext.any() else None,
+            "omega_t2": self.omega_t2, "n_below_2omega_t2": self.n_below,
+            "mean_modulated_energy": float(np.mean(self.modulated_energy)),
+            "variational_ok": bool(self.n_below >= 0.5 * self.q_prime),
+        }
+
+
+def analyze(comm, cs, e0=0.1, nbins=10, progress=None, basis="block",
+            columns=COLUMNS_DEFAULT):
+    """Count, extract and characterise the soft modes of the cut system ``cs``; ``basis``
+    chooses the null-space method and ``columns`` its column blocks (None: one block,
+    :func:`parjam.softmodes.nullspace.null_basis`)."""
+    PETSc = env.petsc()
+    log = progress or (lambda msg: None)
+    d = cs.d
+    scale = stiffness_scale(cs.kept, cs.alpha, cs.eps)
+    times = {}
+    t0 = time.perf_counter()
+    stage = PETSc.Log.Stage("softmodes: count")
+    stage.push()
+    M = relaxed_matrix(comm, cs, cs.kept)
+    count = null_count(comm, M, scale)
+    stage.pop()
+    times["count"] = time.perf_counter() - t0
+    log(f"null space of the cut system: {count} (expected d + q - 1 = {cs.expected} "
+        f"if isostatic), {cs.localised} trivially localised")
+    n_soft = count - d
+    if n_soft <= 0:
+        M.destroy()
+        raise ParjamError(f"the cut system has no soft mode besides the {d} translations "
+                          f"(q = {cs.q} cuts on a packing {cs.excess:+d} from isostatic)")
+    t0 = time.perf_counter()
+    stage = PETSc.Log.Stage("softmodes: null space")
+    stage.push()
+    nb = null_basis(comm, M, d, n_soft, scale, basis, columns)
+    S = rigidity_matrix(comm, cs, cs.kept)
+    eq3 = eq3_residual(comm, S, nb.V)
+    S.destroy()
+    M.destroy()
+    stage.pop()
+    times["null_space"] = time.perf_counter() - t0
+    log(f"{n_soft} soft modes ({nb.solver}, {nb.iterations} iterations), "
+        f"Eq. 3 residual {eq3:.1e}")
+    t0 = time.perf_counter()
+    stage = PETSc.Log.Stage("softmodes: analysis")
+    stage.push()
+    res = characterise(comm, cs, nb, count, e0, nbins)
+    stage.pop()
+    times["analysis"] = time.perf_counter() - t0
+    res.eq3 = eq3
+    res.solver = {"eps_type": nb.solver, "iterations": nb.iterations, "scale_k": scale,
+                  "columns": int(columns) if columns is not None else 0,
+                  **{f"seconds_{k}": v for k, v in times.items()}}
+    return res
+
+
+def characterise(comm, cs, nb, count, e0, nbins):
+    """Extension, f(x) and trial modes of the null basis ``nb`` (rotated in place: ``nb.V`` is
+    the extended basis afterwards; no second n x n_soft array is made)."""
+    pos = cs.pos[nb.lo:nb.hi]
+    g = modulation(pos, cs.L, cs.planes)
+    ortho = orthonormality_error(comm, nb.V)
+    u = coordinate_from_plane(pos, cs.L, cs.planes[0])
+    centres, f = overlap_function(comm, nb.V, u, nbins)  # basis-independent
+    _, f_nt = overlap_without_localised(comm, cs, nb.V, nb.lo, nb.hi, u, nbins)
+    e, V = extended_basis(comm, nb.V, g**2, inplace=True)  # Appendix
+    Mu = relaxed_matrix(comm, cs, cs.contacts)
+    Eg = energies(comm, Mu, V, weight=np.repeat(g, cs.d))  # <g dR|M|g dR>
+    E = np.where(e > 1e-12, Eg / np.maximum(e, 1e-12), np.nan)  # Eq. (rr), C_b = e_b^-1/2
+    grad2 = gradient_bound(cs.L, cs.planes)
+    ext = e > e0
+    omega_t2 = float(np.mean(E[ext])) if ext.any() else 0.0
+    n_below = variational_count(comm, Mu, omega_t2) if ext.any() else 0
+    Mu.destroy()
+    scale = stiffness_scale(cs.kept, cs.alpha, cs.eps)
+    return SoftModes(cs=cs, count=count, n_soft=count - cs.d, V=V, lo=nb.lo, hi=nb.hi, e=e,
+                     rayleigh=nb.rayleigh, gap=nb.gap / scale, eq3=0.0, ortho=ortho,
+                     overlap=np.stack([centres, f, f_nt], axis=1), trial_energy=E,
+                     modulated_energy=Eg, e0=e0, omega_L2=omega_L2(e0, cs.kappa, cs.z_max, grad2),
+                     grad2=grad2, omega_t2=omega_t2, n_below=n_below,
+                     fractions=extended_fraction(e, cs.q))

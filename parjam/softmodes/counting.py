@@ -1,0 +1,49 @@
+"""Counting soft modes exactly (Wyart et al. 2005, Sec. II): the null-space dimension of the cut
+system from MUMPS inertia.  Cutting q contacts of a network Nc - Nc_iso from isostatic leaves
+d + q - 1 - (Nc - Nc_iso) zero modes (d translations included, Nc_iso = d(N' - 1) + 1; for an
+isostatic packing d + q - 1, :attr:`parjam.softmodes.cut.CutSystem.expected`)."""
+
+from parjam import env, factor
+from parjam.errors import ParjamError
+
+
+def count_below(comm, M, s, prefix="soft_inertia_"):
+    """Number of eigenvalues of the symmetric M below s: the negative inertia of M - s I from a
+    MUMPS LDL^T factorisation (SBAIJ; ICNTL(13) = 1 makes the inertia exact on several ranks)."""
+    PETSc = env.petsc()
+    A = M.copy()
+    A.shift(-s)
+    A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+    As = A.convert("sbaij")
+    pc = PETSc.PC().create(comm=comm)
+    try:
+        pc.setOptionsPrefix(prefix)
+        pc.setOperators(As)
+        factor.use_cholesky(pc)
+        factor.exact_inertia(pc, null_pivots=True)
+        pc.setFromOptions()
+        pc.setUp()
+        neg, zero, _ = pc.getFactorMatrix().getInertia()
+    finally:
+        pc.destroy()
+        As.destroy()
+        A.destroy()
+    return int(neg) + int(zero)
+
+
+def null_count(comm, M, scale, thresholds=(1e-10, 1e-6)):
+    """Null-space dimension of the PSD matrix M: eigenvalues below t * scale, counted by inertia
+    at both thresholds; a different count means no clear gap (ParjamError)."""
+    counts = [count_below(comm, M, t * scale) for t in thresholds]
+    if counts[0] != counts[1]:
+        raise ParjamError(
+            f"no spectral gap around zero: {counts[0]} eigenvalues below {thresholds[0]:g} k "
+            f"but {counts[1]} below {thresholds[1]:g} k; the null space is ill-defined "
+            "(nearly floppy contacts?)")
+    return counts[0]
+
+
+def variational_count(comm, M_uncut, omega_t2):
+    """Number of true eigenmodes of the uncut M with omega^2 < 2 omega_t^2 (inertia): the
+    variational argument of Sec. III needs at least q'/2 of them."""
+    return count_below(comm, M_uncut, 2.0 * omega_t2)
