@@ -140,6 +140,22 @@ class Network:
         }
 
 
+def active_index(rattler):
+    """The serial re-index of the non-rattlers: 0..N'-1 in particle order, -1 for rattlers
+    (the distributed one is parjam.active.renumber)."""
+    keep = ~np.asarray(rattler, dtype=bool)
+    index = np.cumsum(keep) - 1
+    index[~keep] = -1
+    return index
+
+
+def active_contacts(net):
+    """The contacts among non-rattlers with both ends in the serial re-index."""
+    index = active_index(net.rattler)
+    c = net.contacts
+    return Contacts(index[c.i], index[c.j], c.rij, c.r, c.sigma)
+
+
 def analyze(pack):
     """Contacts, rattlers, z, pressure, stress and residual forces of a packing."""
     allc = find_contacts(pack)
