@@ -27,8 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from parjam import potential
+from parjam import hessian, potential
 from parjam.domain import SlabDomain, as_mpi
+from parjam.network import NetworkNumbers
 from parjam.system import pair_separation, sphere_volume
 
 
@@ -57,8 +58,9 @@ class Contacts:
 
 
 @dataclass
-class ActiveNetwork:
-    """This rank's share of the contact network (see the module doc)."""
+class ActiveNetwork(NetworkNumbers):
+    """This rank's share of the contact network (see the module doc); N', Nc, z, dz, ... and
+    ``summary`` as network.Network's."""
 
     comm: object  # mpi4py communicator
     d: int
@@ -100,27 +102,6 @@ class ActiveNetwork:
         return self.n_active * self.d
 
     @property
-    def n_iso(self):
-        """Nc_iso = d (N' - 1) + 1 (isostatic count in a periodic box)."""
-        return self.d * (self.n_active - 1) + 1
-
-    @property
-    def excess(self):
-        return self.n_contacts - self.n_iso
-
-    @property
-    def z(self):
-        return 2.0 * self.n_contacts / self.n_active if self.n_active else 0.0
-
-    @property
-    def dz(self):
-        return self.z - 2.0 * self.d
-
-    @property
-    def dz_iso(self):
-        return 2.0 * self.excess / self.n_active if self.n_active else 0.0
-
-    @property
     def n_rattlers(self):
         return self.n - self.n_active
 
@@ -130,20 +111,8 @@ class ActiveNetwork:
 
     def blocks(self, kind="full"):
         """Per-half-edge blocks K_ij of Eq. (1) (parjam.hessian)."""
-        from parjam import hessian
         c = self.contacts
         return hessian.contact_blocks(c.rij, c.r, c.sigma, self.alpha, self.eps, kind)
-
-    def summary(self):
-        """The same keys and values as ``network.Network.summary``."""
-        return {
-            "phi": self.phi, "N": self.n, "N_active": self.n_active,
-            "n_rattlers": self.n_rattlers, "Nc": self.n_contacts, "Nc_iso": self.n_iso,
-            "excess": self.excess, "z": self.z, "dz": self.dz, "dz_iso": self.dz_iso,
-            "pressure": self.pressure,
-            "energy_per_particle": self.energy / self.n, "max_force": self.max_force,
-            "max_force_rel": self.max_force / self.mean_force if self.mean_force else np.inf,
-        }
 
 
 def half_edges(dom, x, diam, ids, cutoff):

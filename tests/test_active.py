@@ -1,6 +1,8 @@
 """The distributed active network (parjam.active) against the serial network.analyze: the same
 contacts, rattlers, N', Nc, z, pressure and forces on 1 and 2 ranks (the MPI pass) and, through
-one serial test, on 3; 2D bidisperse and 3D monodisperse packings of tests/data."""
+one serial test, on 3; 2D bidisperse and 3D monodisperse packings of tests/data.  The operators
+assembled from its half-edges (AIJ and SBAIJ) equal the replicated assembly, their eigenvalues
+the dense LAPACK references to 1e-8, and no solver leaves options in PETSc's database."""
 
 import os
 import subprocess
@@ -10,13 +12,14 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from parjam import active
+from parjam import active, env, hessian, kpm, moduli, spectrum
 from parjam.io import read_packing
 from parjam.network import analyze
 
 from conftest import DATA, ROOT, subprocess_env
 
 COMM = MPI.COMM_WORLD
+WORLD = env.petsc().COMM_WORLD
 PACKINGS = ["ref_d2_bi_N128_dphi1e-03.h5", "ref_d3_mono_N128_dphi1e-06.h5",
             "soft_d3_N256_m0.h5", "soft_d2_N256_m1.h5"]
 
@@ -84,6 +87,80 @@ def test_unjammed_every_particle_a_rattler():
                        np.arange(start, stop), L)
     assert net.n_active == 0 and net.n_contacts == 0 and net.n_rattlers == 60
     assert net.rows == (0, 0)
+
+
+def keyed_product(A, system, seed=3):
+    """A x for x with entry (particle p, component a) fixed by (p, a): {p: (A x)_p} over all
+    ranks, comparable between numberings."""
+    keys = system.particle_keys(WORLD)
+    x = A.createVecRight()
+    kpm.fill_probe(x, seed, 0, "gaussian", keys=keys)
+    y = A.createVecLeft()
+    A.mult(x, y)
+    rows = y.getArray().reshape(-1, system.d).copy()
+    x.destroy()
+    y.destroy()
+    got = COMM.allgather((np.asarray(keys), rows))
+    return {int(k): r for ks, rs in got for k, r in zip(ks, rs)}
+
+
+@pytest.mark.parametrize("name", PACKINGS[:2])
+@pytest.mark.parametrize("fmt", ["aij", "sbaij"])
+def test_assembly_equals_the_replicated_one(name, fmt):
+    """The matrix from half-edges (slab rows) is the replicated matrix (PETSc's row split) up to
+    the numbering, in either format, preallocated exactly (no mallocs)."""
+    pack = read_packing(os.path.join(DATA, name))
+    old = spectrum.active_system(pack)
+    new = spectrum.distributed_system(active.from_packing(COMM, pack))
+    A_old = spectrum.dynamical_matrix(WORLD, old, "full")
+    A_new = spectrum.dynamical_matrix(WORLD, new, "full", fmt=fmt)
+    assert A_new.getType().endswith(fmt) and A_new.getBlockSize() == pack.d
+    assert A_new.getInfo()["mallocs"] == 0
+    want, got = keyed_product(A_old, old), keyed_product(A_new, new)
+    assert sorted(want) == sorted(got)
+    scale = A_old.norm(env.petsc().NormType.INFINITY)
+    assert max(np.abs(want[k] - got[k]).max() for k in want) <= 1e-13 * scale
+    A_old.destroy()
+    A_new.destroy()
+
+
+@pytest.mark.parametrize("name", ["ref_d2_bi_N128_dphi1e-03", "ref_d3_mono_N128_dphi1e-06"])
+def test_distributed_eigenvalues_equal_dense_lapack(name):
+    """Shift-and-invert, slicing and the dense path on the distributed system against the
+    stored dense LAPACK spectra (translations kept there)."""
+    pack = read_packing(os.path.join(DATA, name + ".h5"))
+    ref = np.load(os.path.join(DATA, name + ".spectrum.npz"))["full"]
+    s = spectrum.distributed_system(active.from_packing(COMM, pack))
+    d = pack.d
+    spec = spectrum.compute(WORLD, s, "full", k=12, method="sinvert")
+    assert np.all(np.abs(spec.eigenvalue / ref[d:d + 12] - 1) <= 1e-8)
+    lo, hi = d + 5, d + 30
+    w = (np.sqrt(0.5 * (ref[lo - 1] + ref[lo])), np.sqrt(0.5 * (ref[hi] + ref[hi + 1])))
+    sl = spectrum.compute(WORLD, s, "full", window=w, method="slice")
+    assert len(sl.eigenvalue) == hi - lo + 1 and sl.complete
+    assert np.all(np.abs(sl.eigenvalue / ref[lo:hi + 1] - 1) <= 1e-8)
+    dense = spectrum.compute(WORLD, s, "full", k=s.n_modes, method="dense", vectors=True)
+    assert np.abs(dense.eigenvalue - ref[d:]).max() <= 1e-12 * dense.norm
+    serial = spectrum.compute(WORLD, spectrum.active_system(pack), "full", k=3,
+                              method="dense", vectors=True)
+    if COMM.rank == 0:  # vectors in the particle order of the file, as the serial ones
+        for u, v in zip(dense.vectors[:3], serial.vectors):
+            assert abs(abs(np.vdot(u.ravel(), v.ravel())) - 1.0) < 1e-8
+
+
+def test_no_options_left_in_the_database():
+    """Options reach the solvers only through their prefixes: none stays behind in PETSc's
+    global database after the spectrum (sinvert, slice), KPM and moduli solvers ran."""
+    opts = env.petsc().Options()
+    before = opts.getAll()
+    pack = read_packing(os.path.join(DATA, PACKINGS[0]))
+    net = active.from_packing(COMM, pack)
+    s = spectrum.distributed_system(net)
+    spectrum.compute(WORLD, s, "full", k=4, method="sinvert")
+    spectrum.compute(WORLD, s, "full", window=(0.2, 0.4), method="slice")
+    kpm.compute(WORLD, s, "full", n_moments=16, n_probes=2)
+    moduli.compute(comm=WORLD, net=net)
+    assert opts.getAll() == before
 
 
 @pytest.mark.serial
