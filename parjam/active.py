@@ -214,6 +214,11 @@ def max_op():
     return MPI.MAX
 
 
+def min_op():
+    from mpi4py import MPI
+    return MPI.MIN
+
+
 def row_block(n, comm):
     """This rank's contiguous block of n rows (the same split as PETSc's): (start, stop)."""
     comm = as_mpi(comm)
