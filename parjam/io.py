@@ -169,8 +169,8 @@ def _write_contacts(f, pack, net):
 MAX_PARTICLES = 50_000_000  # a file claiming more is refused before anything is read
 
 
-def _dataset(f, name, path, ndims, max_size=None):
-    """A real-valued dataset as float64, its type and shape checked before it is read."""
+def checked_dataset(f, name, path, ndims, max_size=None):
+    """The h5py Dataset /name, its type and shape checked before anything is read."""
     if name not in f:
         raise ParjamError(f"{path}: missing dataset /{name}")
     obj = f[name]
@@ -184,10 +184,15 @@ def _dataset(f, name, path, ndims, max_size=None):
     if max_size is not None and obj.size > max_size:
         raise ParjamError(f"{path}: /{name} holds {obj.size} values: absurdly large "
                           f"(limit {max_size})")
-    return np.asarray(obj[()], dtype=float)
+    return obj
 
 
-def _scalar_param(params, key, default, path):
+def _dataset(f, name, path, ndims, max_size=None):
+    """A real-valued dataset as float64, its type and shape checked before it is read."""
+    return np.asarray(checked_dataset(f, name, path, ndims, max_size)[()], dtype=float)
+
+
+def scalar_param(params, key, default, path):
     """A finite real scalar from /parameters attributes (or the default)."""
     val = params.get(key, default)
     arr = np.asarray(val)
@@ -212,7 +217,7 @@ def read_packing(path):
         with h5py.File(path, "r") as f:
             pos = _dataset(f, "particles/all/position/value", path, (2, 3), limit)
             diam = _dataset(f, "particles/all/diameter", path, (1,), limit)
-            edges = _box_edges(f, path)
+            edges = box_edges(f, path)
             species = None
             if isinstance(f.get("particles/all/species"), h5py.Dataset):
                 species = _dataset(f, "particles/all/species", path, (1,), limit)
@@ -227,7 +232,7 @@ def read_packing(path):
     return pack
 
 
-def _box_edges(f, path):
+def box_edges(f, path):
     """Box edges of the last frame: an H5MD time series (``box/edges/value``, parjam's files)
     or a plain dataset (older parjam files, the reference layout, other H5MD writers)."""
     if isinstance(f.get("particles/all/box/edges"), h5py.Group):
@@ -247,42 +252,67 @@ def validated_packing(path, pos, diam, edges, params):
         if pos.shape[0] == 0:
             raise ParjamError(f"{path}: the position time series holds no frame")
         pos = pos[-1]
-    if pos.ndim != 2 or pos.shape[1] not in (2, 3):
-        raise ParjamError(f"{path}: positions must have shape (N, 2) or (N, 3), got {pos.shape}")
-    n, d = pos.shape
-    if n < 2:
-        raise ParjamError(f"{path}: a packing needs at least 2 particles, got {n}")
-    if diam.shape != (n,):
-        raise ParjamError(f"{path}: diameters must have shape ({n},), got {diam.shape}")
-    if edges.shape != (d,) or not np.allclose(edges, edges[0], rtol=1e-12):
-        raise ParjamError(f"{path}: box edges must be {d} equal values, got {edges}")
-    for name, arr in (("positions", pos), ("diameters", diam), ("box edges", edges)):
-        if not np.all(np.isfinite(arr)):
-            raise ParjamError(f"{path}: {name} contain NaN or inf")
-    if np.any(diam <= 0) or edges[0] <= 0:
-        raise ParjamError(f"{path}: diameters and box edges must be positive")
-    L = float(edges[0])
-    if L <= 2.0 * diam.max() * (1.0 + 1e-9):
-        raise ParjamError(f"{path}: box edge {L:.6g} is not larger than twice the largest "
-                          f"diameter {diam.max():.6g}")
-    if np.abs(pos).max() > 1e3 * L:
-        raise ParjamError(f"{path}: positions lie far outside the box of edge {L:.6g} "
-                          f"(largest |x| = {np.abs(pos).max():.3g})")
-    alpha = _scalar_param(params, "alpha", 2.0, path)
-    if alpha <= 1:
-        raise ParjamError(f"{path}: alpha must be > 1, got {alpha}")
-    eps = _scalar_param(params, "epsilon", 1.0, path)
-    if eps <= 0:
-        raise ParjamError(f"{path}: epsilon must be > 0, got {eps}")
-    meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in params.items()}
-    meta["source"] = os.path.abspath(path)
-
+    L = check_layout(path, pos.shape, diam.shape, edges)
+    message = value_problem(path, pos, diam, edges, L)
+    if message:
+        raise ParjamError(message)
+    alpha, eps, meta = model_parameters(path, params)
     pos = wrap(pos, L)
     _check_distinct(path, pos, diam, L)
     try:
         return Packing(pos, diam, L, alpha, eps, meta)
     except ValueError as exc:
         raise ParjamError(f"{path}: {exc}") from None
+
+
+def check_layout(path, pos_shape, diam_shape, edges):
+    """Shapes of one frame's positions (N, d) and diameters, and the box edges; returns L."""
+    if len(pos_shape) != 2 or pos_shape[1] not in (2, 3):
+        raise ParjamError(f"{path}: positions must have shape (N, 2) or (N, 3), got "
+                          f"{tuple(pos_shape)}")
+    n, d = pos_shape
+    if n < 2:
+        raise ParjamError(f"{path}: a packing needs at least 2 particles, got {n}")
+    if tuple(diam_shape) != (n,):
+        raise ParjamError(f"{path}: diameters must have shape ({n},), got {tuple(diam_shape)}")
+    if edges.shape != (d,) or not np.allclose(edges, edges[0], rtol=1e-12):
+        raise ParjamError(f"{path}: box edges must be {d} equal values, got {edges}")
+    if not np.all(np.isfinite(edges)):
+        raise ParjamError(f"{path}: box edges contain NaN or inf")
+    if edges[0] <= 0:
+        raise ParjamError(f"{path}: diameters and box edges must be positive")
+    return float(edges[0])
+
+
+def value_problem(path, pos, diam, edges, L):
+    """The first problem with (any rows of) positions and diameters, or None."""
+    for name, arr in (("positions", pos), ("diameters", diam), ("box edges", edges)):
+        if not np.all(np.isfinite(arr)):
+            return f"{path}: {name} contain NaN or inf"
+    if len(diam) == 0:
+        return None
+    if np.any(diam <= 0):
+        return f"{path}: diameters and box edges must be positive"
+    if L <= 2.0 * diam.max() * (1.0 + 1e-9):
+        return (f"{path}: box edge {L:.6g} is not larger than twice the largest "
+                f"diameter {diam.max():.6g}")
+    if np.abs(pos).max() > 1e3 * L:
+        return (f"{path}: positions lie far outside the box of edge {L:.6g} "
+                f"(largest |x| = {np.abs(pos).max():.3g})")
+    return None
+
+
+def model_parameters(path, params):
+    """alpha, epsilon and the metadata from the /parameters attributes."""
+    alpha = scalar_param(params, "alpha", 2.0, path)
+    if alpha <= 1:
+        raise ParjamError(f"{path}: alpha must be > 1, got {alpha}")
+    eps = scalar_param(params, "epsilon", 1.0, path)
+    if eps <= 0:
+        raise ParjamError(f"{path}: epsilon must be > 0, got {eps}")
+    meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in params.items()}
+    meta["source"] = os.path.abspath(path)
+    return alpha, eps, meta
 
 
 DUPLICATE_TOL = 1e-9  # centres closer than this times the smallest diameter coincide

@@ -28,11 +28,13 @@ at the cost of (moments / 2) products per probe vector and no factorisation.
    into lambda < 0 by about its resolution; that weight belongs to the lowest modes and is
    counted in the lowest bin (reported as ``weight_below_zero``).
 
-Probe vectors depend only on (seed, probe index) and the global row index, never on the rank
-count: the vector is generated in fixed chunks of CHUNK entries, each from its own
-``numpy.random.SeedSequence([seed, 0, probe, chunk])``, and each rank generates only the chunks that
-cover its rows.  1 and 2 ranks therefore give the same moments up to the round-off of the
-parallel sums.
+Probe vectors depend only on (seed, probe index) and the particle, never on the rank count or
+the numbering of the rows: entry (particle p, component a) is number p d + a of a vector
+generated in fixed chunks of CHUNK entries, each from its own
+``numpy.random.SeedSequence([seed, 0, probe, chunk])``; each rank generates only the chunks
+holding its particles (the keys ``ActiveSystem.particle_keys`` gives).  1 and 2 ranks therefore
+give the same moments up to the round-off of the parallel sums, with the serial re-index and
+with the slab numbering of parjam.active alike.
 
 PETSc log stages: ``kpm: bounds`` and ``kpm: moments`` (``-log_view``).
 """
@@ -43,7 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from parjam import env, observables, spectrum
+from parjam import env, observables, spectrum, translations
 from parjam.errors import ParjamError
 from parjam.logstage import log_stage
 
@@ -70,17 +72,31 @@ def probe_values(seed, probe, lo, hi, kind="rademacher", stream=0):
     return out
 
 
-def fill_probe(v, seed, probe, kind, stream=0):
+def probe_entries(seed, probe, index, kind="rademacher", stream=0):
+    """Entries number ``index`` (any global indices) of probe number ``probe``: the numbers of
+    ``probe_values`` at those places, generating only the chunks that hold them."""
+    index = np.asarray(index, dtype=np.int64)
+    out = np.empty(len(index))
+    chunk = index // CHUNK
+    for c in np.unique(chunk):
+        sel = chunk == c
+        rel = index[sel] - c * CHUNK
+        out[sel] = probe_values(seed, probe, int(c) * CHUNK, int(c) * CHUNK + CHUNK, kind,
+                                stream)[rel]
+    return out
+
+
+def fill_probe(v, seed, probe, kind, stream=0, keys=None):
+    """Fill v with probe ``probe``.  ``keys``: the particle id of each local block row, so that
+    the probe entry of (particle p, component a) is entry p d + a whatever the rank layout and
+    the numbering of the rows (parjam.active numbers rows by slab); None: the row index."""
     lo, hi = v.getOwnershipRange()
-    v.getArray()[:] = probe_values(seed, probe, lo, hi, kind, stream)
-
-
-def project_translations(v, d):
-    """v <- P v: remove the d uniform translations (v is a distributed Vec, blocks of d)."""
-    arr = v.getArray().reshape(-1, d)
-    n = v.getSize() // d
-    mean = v.getComm().tompi4py().allreduce(arr.sum(axis=0)) / n
-    arr -= mean
+    if keys is None:
+        v.getArray()[:] = probe_values(seed, probe, lo, hi, kind, stream)
+        return
+    d = (hi - lo) // max(len(keys), 1) if len(keys) else 1
+    index = (np.asarray(keys, dtype=np.int64)[:, None] * d + np.arange(d)).ravel()
+    v.getArray()[:] = probe_entries(seed, probe, index, kind, stream)
 
 
 # --- spectral bounds ---------------------------------------------------------------------------
@@ -115,14 +131,14 @@ def lanczos_ritz(A, v0, steps):
     return theta[0], resid[0], theta[-1], resid[-1]
 
 
-def spectral_bounds(A, d, kind, seed, steps=40, margin=1e-3):
+def spectral_bounds(A, d, kind, seed, steps=40, margin=1e-3, keys=None):
     """[a, b] enclosing the spectrum of A (see the module doc), and a record of how."""
     PETSc = env.petsc()
     norm = A.norm(PETSc.NormType.INFINITY)  # Gershgorin: |lambda| <= ||A||_inf
     unstable = False
     v = A.createVecRight()
-    fill_probe(v, seed, 0, "gaussian", stream=1)
-    project_translations(v, d)
+    fill_probe(v, seed, 0, "gaussian", stream=1, keys=keys)
+    translations.project(v, d)
     tmin, rmin, tmax, rmax = lanczos_ritz(A, v, min(steps, A.getSize()[0]))
     v.destroy()
     b = min(norm, tmax + max(rmax, 0.01 * abs(tmax)))
@@ -274,9 +290,11 @@ def density_x(mu, x):
 
 
 def moments(A, d, n_modes, kind="full", n_moments=256, n_probes=16, *, seed=0,
-            probe_kind="rademacher", bounds=None, lanczos_steps=40, margin=1e-3, progress=None):
+            probe_kind="rademacher", bounds=None, lanczos_steps=40, margin=1e-3, progress=None,
+            keys=None):
     """KPM moments of the spectral density of the distributed matrix A (non-rattler rows, blocks
-    of d; translations projected out).  ``bounds`` = (a, b) skips the Lanczos estimate."""
+    of d; translations projected out).  ``bounds`` = (a, b) skips the Lanczos estimate;
+    ``keys`` (particle ids of the local rows) make the probes independent of the numbering."""
 
     if n_moments < 2:
         raise ParjamError(f"--moments must be >= 2, got {n_moments}")
@@ -288,7 +306,7 @@ def moments(A, d, n_modes, kind="full", n_moments=256, n_probes=16, *, seed=0,
     t0 = time.perf_counter()
     with log_stage("kpm: bounds"):
         if bounds is None:
-            a, b, info = spectral_bounds(A, d, kind, seed, lanczos_steps, margin)
+            a, b, info = spectral_bounds(A, d, kind, seed, lanczos_steps, margin, keys)
         else:
             a, b = (float(x) for x in bounds)
             if not (np.isfinite(a) and np.isfinite(b) and a < b):
@@ -301,8 +319,8 @@ def moments(A, d, n_modes, kind="full", n_moments=256, n_probes=16, *, seed=0,
     r = A.createVecRight()
     with log_stage("kpm: moments"):
         for p in range(n_probes):
-            fill_probe(r, seed, p, probe_kind)
-            project_translations(r, d)
+            fill_probe(r, seed, p, probe_kind, keys=keys)
+            translations.project(r, d)
             raw[p] = probe_moments(A, r, c, h, n_moments)
             if (p + 1) % max(1, n_probes // 2) == 0:
                 log(f"kpm: probe {p + 1}/{n_probes}")
@@ -367,10 +385,11 @@ def dos_record(res, bins=40, omega_max=None, plateau=None):
 def compute(comm, system, kind="full", n_moments=256, n_probes=16, seed=0,
             probe_kind="rademacher", bounds=None, progress=None):
     """KPM moments of one matrix of an ActiveSystem (parjam.spectrum): assemble, run, free."""
-    A = spectrum.dynamical_matrix(comm, system, kind)
+    A = spectrum.dynamical_matrix(comm, system, kind, fmt="aij")
     try:
         return moments(A, system.d, system.n_modes, kind, n_moments, n_probes, seed=seed,
-                       probe_kind=probe_kind, bounds=bounds, progress=progress)
+                       probe_kind=probe_kind, bounds=bounds, progress=progress,
+                       keys=system.particle_keys(comm))
     finally:
         A.destroy()
 

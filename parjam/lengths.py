@@ -32,8 +32,8 @@ i.e. about 9 sigma / dz for monodisperse spheres in 3D and 16 <r> / (pi dz) in 2
 at random positions: particles left with fewer than d contacts are removed iteratively (each
 removal takes d - z_i trivially localised modes), the rigid motions d(d+1)/2 of every connected
 piece are subtracted, and the null space of the relaxed-spring matrix of what remains is counted
-exactly by MUMPS inertia (parjam.softmodes.null_count).  The measured l* is the edge at which
-the mean cut-plane count of the real cubes changes sign.  Since floppy clusters along the cut
+exactly by MUMPS inertia (:func:`null_count`, options prefix ``lengths_inertia_``).  The
+measured l* is the edge at which the mean cut-plane count of the real cubes changes sign.  Since floppy clusters along the cut
 faces keep a few soft modes in cubes of any size, the soft modes are also sorted by extension
 as in the paper's Appendix, inside each cube (:func:`extended_soft_count`: G multiplies
 particle i by prod_a sin^2(pi u_a / l), the rigid motions removed first): ``lstar_extended``
@@ -52,10 +52,11 @@ import scipy.linalg
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from parjam import env, hessian, io, observables, softmodes, solver_choice, spectrum, structure
+from parjam import (env, hessian, io, network, observables, softmodes, solver_choice,
+                    spectrum, structure)
 from parjam import moduli as moduli_mod
 from parjam.errors import ParjamError
-from parjam.network import Contacts, analyze
+from parjam.network import analyze
 
 
 # --------------------------------------------------------------------------- sound speeds
@@ -260,11 +261,9 @@ def count_cube(pos, contacts, L, x0, ell, *, alpha, eps, scale, comm_self, e0=No
     pieces, labels = components(n_core, ci, cj, labels=True)
     blocks = hessian.contact_blocks(kept.rij[ck], kept.r[ck], kept.sigma[ck], alpha, eps,
                                     "relaxed")
-    M = hessian.assemble(comm_self, n_core, d, ci, cj, blocks)
+    M = hessian.assemble(comm_self, n_core, d, ci, cj, blocks, fmt="sbaij")
     try:
-        null = softmodes.null_count(comm_self, M, scale)
-    except ParjamError:  # no clear gap between 1e-10 k and 1e-6 k: the soft count is unknown
-        null = -1
+        null = null_count(comm_self, M, scale)
     finally:
         M.destroy()
     out = CubeCount(ell, n, q, len(kept), n_core, int(ck.sum()), trivial, int(pieces),
@@ -277,6 +276,19 @@ def count_cube(pos, contacts, L, x0, ell, *, alpha, eps, scale, comm_self, e0=No
             H = hessian.dense_hessian(n_core, d, ci, cj, blocks)
             out.extended = extended_soft_count(H, u, ell, labels, e0)
     return out
+
+
+INERTIA_PREFIX = "lengths_inertia_"  # options of the cube counts' MUMPS factorisations
+GAP_THRESHOLDS = (1e-10, 1e-6)  # x stiffness scale: the zero cluster and the gap above it
+
+
+def null_count(comm_self, M, scale):
+    """Null-space dimension of a cube's PSD matrix M, counted by inertia (softmodes.count_below,
+    under this command's own prefix) at both GAP_THRESHOLDS; -1 when the counts differ (no clear
+    gap: the soft count is unknown)."""
+    counts = {softmodes.count_below(comm_self, M, t * scale, prefix=INERTIA_PREFIX)
+              for t in GAP_THRESHOLDS}
+    return counts.pop() if len(counts) == 1 else -1
 
 
 @dataclass
@@ -379,8 +391,7 @@ def lstar(comm, pack, ells, *, samples=8, seed=0, net=None, progress=None, e0=No
     rank, size = mpi.Get_rank(), mpi.Get_size()
     mine = []
     # only non-rattlers take part: pass their positions and re-indexed contacts
-    index = np.cumsum(act) - 1
-    contacts = Contacts(index[c.i], index[c.j], c.rij, c.r, c.sigma)
+    contacts = network.active_contacts(net)
     pos_a = pos[act]
     for t in range(len(ells) * samples):
         if t % size != rank:

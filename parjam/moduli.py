@@ -49,10 +49,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, factor, hessian, io, potential
+from parjam import active, env, factor, hessian, io, potential, translations
 from parjam.errors import ParjamError
 from parjam.logstage import log_stage
-from parjam.network import analyze
 
 
 def sym_pairs(d):
@@ -67,24 +66,32 @@ def symmetrise4(T):
 
 
 def affine_tensor(rij, blocks, volume):
-    """Born term (1/V) sum_contacts K_ac r_b r_d, symmetrised (energy tensor, affine part)."""
+    """Born term (1/V) sum K_ac r_b r_d over the given contacts, symmetrised (energy tensor,
+    affine part)."""
     T = np.einsum("kac,kb,kd->abcd", blocks, rij, rij)
     return symmetrise4(T) / volume
 
 
-def strain_force_fields(n, pi, pj, rij, blocks):
-    """Xi_ab (n, d) for every independent (a, b): U_{u eps} of the symmetrised strain,
-    Xi_ab(j)_c = (K_ca r_b + K_cb r_a)/2 on the j end of a contact, minus that on the i end."""
+def strain_force_fields(lo, hi, pi, pj, rij, blocks):
+    """Xi_ab for every independent (a, b) on this rank's rows [lo, hi), from half-edges (pi
+    owned, every contact once per end; parjam.active): U_{u eps} of the symmetrised strain,
+    Xi_ab(j)_c = (K_ca r_b + K_cb r_a)/2 on the j end of a contact, minus that on the i end, so
+    the owned end i of a half-edge with r = x_j - x_i gets -(K_ca r_b + K_cb r_a)/2."""
     d = rij.shape[1]
     out = []
     for a, b in sym_pairs(d):
         f = 0.5 * (blocks[:, :, a] * rij[:, b:b + 1] + blocks[:, :, b] * rij[:, a:a + 1])
-        xi = np.zeros((n, d))
+        xi = np.zeros((hi - lo, d))
         for c in range(d):
-            xi[:, c] = (np.bincount(pj, weights=f[:, c], minlength=n)
-                        - np.bincount(pi, weights=f[:, c], minlength=n))
+            xi[:, c] = -np.bincount(pi - lo, weights=f[:, c], minlength=hi - lo)
         out.append(xi)
     return out
+
+
+def half_sum(comm, local):
+    """The sum over contacts of a per-half-edge sum (each contact counted twice, once per end):
+    half the allreduced value."""
+    return 0.5 * comm.tompi4py().allreduce(local)
 
 
 def tensile_stress(rij, r, sigma, alpha, eps, volume):
@@ -202,11 +209,14 @@ class Moduli:
 
 
 @dataclass
-class ActiveNetwork:
-    """Non-rattlers re-indexed 0..n-1 and their contacts with the blocks K of Eq. (1)."""
+class ResponseSystem:
+    """This rank's share of the non-rattler network (parjam.active): rows [lo, hi) of the N'
+    re-indexed non-rattlers, the half-edges pi (owned) -> pj and their blocks K of Eq. (1)."""
 
     n: int
     d: int
+    rows: tuple
+    n_contacts: int
     pi: np.ndarray
     pj: np.ndarray
     rij: np.ndarray
@@ -215,32 +225,21 @@ class ActiveNetwork:
     blocks: np.ndarray
 
 
-def active_network(pack):
-    """Contacts among non-rattlers; raises ParjamError for an unjammed packing."""
-    net = analyze(pack)
+def response_system(net):
+    """From a distributed active network; raises ParjamError for an unjammed packing."""
     if net.n_active == 0 or net.excess < 0:
         raise ParjamError(
-            f"packing is not jammed: {net.n_active} non-rattlers with {net.n_contacts} contacts, "
-            f"{net.excess:+d} from isostatic d(N'-1)+1: no elastic moduli")
-    idx = np.cumsum(~net.rattler) - 1
+            f"packing is not jammed: {net.n_active} non-rattlers with {net.n_contacts} "
+            f"contacts, {net.excess:+d} from isostatic d(N'-1)+1: no elastic moduli")
     c = net.contacts
-    blocks = hessian.contact_blocks(c.rij, c.r, c.sigma, pack.alpha, pack.eps, "full")
-    return ActiveNetwork(net.n_active, pack.d, idx[c.i], idx[c.j], c.rij, c.r, c.sigma, blocks)
+    return ResponseSystem(net.n_active, net.d, net.rows, net.n_contacts, c.i, c.j, c.rij, c.r,
+                          c.sigma, net.blocks("full"))
 
 
-def translations(comm, D, d):
-    """MatNullSpace of the d rigid translations (orthonormal vectors, layout of D)."""
-    PETSc = env.petsc()
-    vecs = []
-    for a in range(d):
-        v = D.createVecLeft()
-        arr = v.array.reshape(-1, d)
-        arr[:] = 0.0
-        arr[:, a] = 1.0
-        v.normalize()
-        vecs.append(v)
-    ns = PETSc.NullSpace().create(constant=False, vectors=vecs, comm=comm)
-    return ns, vecs
+def active_network(pack, comm=None):
+    """The response system of a packing every rank holds (tests, small systems)."""
+    comm = comm or env.petsc().COMM_WORLD
+    return response_system(active.from_packing(comm, pack))
 
 
 def response_solver(comm, D, P):
@@ -258,11 +257,11 @@ def response_solver(comm, D, P):
 
 
 def solve_responses(comm, D, rhs, d, tau_rel=1e-10):
-    """u = D^+ Xi for every Xi in ``rhs`` (full (n, d) arrays on every rank); returns the matrix
+    """u = D^+ Xi for every Xi in ``rhs`` (this rank's rows, (n_loc, d)); returns the matrix
     of dot products Xi_k . u_l, and the solver report.  Raises ParjamError when a solve does not
     converge (zero modes of D beyond the translations, or a solver failure)."""
     PETSc = env.petsc()
-    ns, tvecs = translations(comm, D, d)
+    ns, tvecs = translations.nullspace(D, d)
     D.setNullSpace(ns)
     diag = D.getDiagonal()
     tau = tau_rel * diag.sum() / diag.getSize()
@@ -270,14 +269,13 @@ def solve_responses(comm, D, rhs, d, tau_rel=1e-10):
     P.shift(tau)
     P.setNearNullSpace(ns)
     ksp = response_solver(comm, D, P)
-    lo, hi = D.getOwnershipRange()
     xis, us, report = [], [], {"iterations": [], "residuals": [], "tau": float(tau),
                                "ksp_type": ksp.getType(), "pc_type": ksp.getPC().getType(),
                                "rtol": ksp.getTolerances()[0]}
     r = D.createVecLeft()
-    for xi_full in rhs:
+    for xi in rhs:
         b = D.createVecLeft()
-        b.array[:] = xi_full.ravel()[lo:hi]
+        b.array[:] = xi.ravel()
         ns.remove(b)  # exact zero in exact arithmetic: only round-off
         u = D.createVecRight()
         ksp.solve(b, u)
@@ -289,11 +287,7 @@ def solve_responses(comm, D, rhs, d, tau_rel=1e-10):
         xis.append(b)
         us.append(u)
     Q = np.array([[xi.dot(u) for u in us] for xi in xis])
-    for v in xis + us + tvecs + [r, diag]:
-        v.destroy()
-    ksp.destroy()
-    P.destroy()
-    ns.destroy()
+    translations.destroy(xis, us, tvecs, r, diag, ksp, P, ns)
     report["max_residual"] = max(report["residuals"])
     bad = 1e3 * report["rtol"] + 1e-10
     if report["max_residual"] > bad:
@@ -304,9 +298,9 @@ def solve_responses(comm, D, rhs, d, tau_rel=1e-10):
     return Q, report
 
 
-def dynamical_matrix(comm, an):
-    """Distributed full dynamical matrix of the non-rattlers (Eq. (1))."""
-    return hessian.assemble(comm, an.n, an.d, an.pi, an.pj, an.blocks)
+def dynamical_matrix(comm, rs):
+    """Distributed full dynamical matrix of the non-rattlers (Eq. (1)), AIJ for CG/GAMG."""
+    return hessian.assemble(comm, rs.n, rs.d, rs.pi, rs.pj, rs.blocks, rows=rs.rows, fmt="aij")
 
 
 def energy_tensor(c_affine, Q, d, volume):
@@ -322,20 +316,21 @@ def energy_tensor(c_affine, Q, d, volume):
     return c_affine - NA / volume
 
 
-def compute(pack, comm=None, progress=None):
-    """Linear-response elastic constants of a packing on communicator ``comm`` (PETSc)."""
-
+def compute(pack=None, comm=None, progress=None, net=None):
+    """Linear-response elastic constants on communicator ``comm`` (PETSc) of a distributed
+    active network ``net`` (parjam.active), or of a packing every rank holds."""
     PETSc = env.petsc()
     comm = comm or PETSc.COMM_WORLD
-    an = active_network(pack)
-    V, d = pack.volume, pack.d
-    s = tensile_stress(an.rij, an.r, an.sigma, pack.alpha, pack.eps, V)
-    c_aff = affine_tensor(an.rij, an.blocks, V)
+    net = net if net is not None else active.from_packing(comm, pack)
+    rs = response_system(net)
+    V, d = net.volume, net.d
+    s = half_sum(comm, tensile_stress(rs.rij, rs.r, rs.sigma, net.alpha, net.eps, V))
+    c_aff = half_sum(comm, affine_tensor(rs.rij, rs.blocks, V))
     with log_stage("moduli: assemble"):
-        D = dynamical_matrix(comm, an)
-        rhs = strain_force_fields(an.n, an.pi, an.pj, an.rij, an.blocks)
+        D = dynamical_matrix(comm, rs)
+        rhs = strain_force_fields(*rs.rows, rs.pi, rs.pj, rs.rij, rs.blocks)
     if progress is not None:
-        progress(f"N' = {an.n}, Nc = {len(an.r)}: {len(rhs)} linear-response solves")
+        progress(f"N' = {rs.n}, Nc = {rs.n_contacts}: {len(rhs)} linear-response solves")
     try:
         with log_stage("moduli: solve"):
             Q, report = solve_responses(comm, D, rhs, d)
@@ -343,7 +338,7 @@ def compute(pack, comm=None, progress=None):
         D.destroy()
     c_u = energy_tensor(c_aff, Q, d, V)
     c_l = lagrangian_tensor(c_u, s)
-    return Moduli(d, an.n, len(an.r), V, float(-np.trace(s) / d), s, c_aff, c_u, c_l,
+    return Moduli(d, rs.n, rs.n_contacts, V, float(-np.trace(s) / d), s, c_aff, c_u, c_l,
                   stress_strain_tensor(c_l, s), report)
 
 

@@ -78,29 +78,9 @@ def stress_tensor(pack, contacts):
     return (w * contacts.rij[:, :, None] * contacts.rij[:, None, :]).sum(axis=0) / pack.volume
 
 
-@dataclass
-class Network:
-    """Summary of a packing's contact network (all the numbers `parjam analyze` prints)."""
-
-    n: int
-    d: int
-    phi: float
-    contacts: Contacts  # among non-rattlers
-    all_contacts: Contacts
-    rattler: np.ndarray
-    energy: float
-    pressure: float
-    stress: np.ndarray
-    max_force: float
-    mean_force: float
-
-    @property
-    def n_active(self):
-        return int((~self.rattler).sum())
-
-    @property
-    def n_contacts(self):
-        return len(self.contacts)
+class NetworkNumbers:
+    """The numbers of a contact network from N, d, N', Nc and the summed observables: shared by
+    the serial :class:`Network` and the distributed parjam.active.ActiveNetwork."""
 
     @property
     def n_iso(self):
@@ -125,10 +105,6 @@ class Network:
         """z - z_iso = 2 (Nc - Nc_iso) / N' (module doc)."""
         return 2.0 * self.excess / self.n_active if self.n_active else 0.0
 
-    @property
-    def n_rattlers(self):
-        return int(self.rattler.sum())
-
     def summary(self):
         return {
             "phi": self.phi, "N": self.n, "N_active": self.n_active,
@@ -138,6 +114,51 @@ class Network:
             "energy_per_particle": self.energy / self.n, "max_force": self.max_force,
             "max_force_rel": self.max_force / self.mean_force if self.mean_force else np.inf,
         }
+
+
+@dataclass
+class Network(NetworkNumbers):
+    """Summary of a packing's contact network (all the numbers `parjam analyze` prints)."""
+
+    n: int
+    d: int
+    phi: float
+    contacts: Contacts  # among non-rattlers
+    all_contacts: Contacts
+    rattler: np.ndarray
+    energy: float
+    pressure: float
+    stress: np.ndarray
+    max_force: float
+    mean_force: float
+
+    @property
+    def n_active(self):
+        return int((~self.rattler).sum())
+
+    @property
+    def n_contacts(self):
+        return len(self.contacts)
+
+    @property
+    def n_rattlers(self):
+        return int(self.rattler.sum())
+
+
+def active_index(rattler):
+    """The serial re-index of the non-rattlers: 0..N'-1 in particle order, -1 for rattlers
+    (the distributed one is parjam.active.renumber)."""
+    keep = ~np.asarray(rattler, dtype=bool)
+    index = np.cumsum(keep) - 1
+    index[~keep] = -1
+    return index
+
+
+def active_contacts(net):
+    """The contacts among non-rattlers with both ends in the serial re-index."""
+    index = active_index(net.rattler)
+    c = net.contacts
+    return Contacts(index[c.i], index[c.j], c.rij, c.r, c.sigma)
 
 
 def analyze(pack):

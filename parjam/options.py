@@ -20,8 +20,9 @@ from parjam import env
 # options prefixes of parjam's solvers, the commands that create them first
 PREFIXES = {"modes": ("modes_",), "pack": ("newton_",), "moduli": ("moduli_",),
             "softmodes": ("soft_", "soft_inertia_", "soft_gap_"),
-            "lengths": ("soft_", "soft_inertia_", "modes_"), "run": ("newton_", "modes_")}
-ALL_PREFIXES = ("modes_", "newton_", "moduli_", "soft_", "soft_inertia_", "soft_gap_")
+            "lengths": ("lengths_inertia_", "modes_"), "run": ("newton_", "modes_")}
+ALL_PREFIXES = ("modes_", "newton_", "moduli_", "soft_", "soft_inertia_", "soft_gap_",
+                "lengths_inertia_")
 
 _KSP = ("ksp_type", "ksp_rtol", "ksp_atol", "ksp_max_it", "ksp_monitor", "ksp_view",
         "ksp_converged_reason", "ksp_norm_type", "ksp_error_if_not_converged", "pc_type",

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from parjam import env, factor, hessian, network, observables, solver_choice
+from parjam import env, factor, hessian, network, observables, solver_choice, translations
 from parjam.errors import ParjamError, UnjammedError
 
 METHODS = ("auto", "dense", "sinvert", "slice")
@@ -46,11 +46,17 @@ PREFIX = "modes_"
 # --- the system: non-rattlers re-indexed 0..N'-1 ---------------------------------------------------
 @dataclass
 class ActiveSystem:
-    """Non-rattlers of a packing (N' of them, re-indexed) and the contacts among them."""
+    """Non-rattlers of a packing (N' of them, re-indexed) and the contacts among them.
+
+    Two layouts of the same thing: ``rows`` None, every contact once on every rank (i < j, the
+    serial re-index ``network.active_index``: small systems, dense references); ``rows`` =
+    (lo, hi), this rank's half-edges of parjam.active (i owned in [lo, hi), every contact once
+    per end, the parallel re-index) and ``ids`` the particle ids of the owned rows."""
 
     n: int
     d: int
-    active: np.ndarray  # original indices of the non-rattlers
+    active: np.ndarray  # original indices of the non-rattlers (replicated layout; rank 0 after
+    # gather_active in the distributed one)
     i: np.ndarray
     j: np.ndarray
     rij: np.ndarray
@@ -62,6 +68,13 @@ class ActiveSystem:
     n_iso: int
     pressure: float
     max_force: float
+    n_contacts: int = -1  # Nc (global); -1: len(r) in the replicated layout
+    rows: tuple = None
+    ids: np.ndarray = None
+
+    def __post_init__(self):
+        if self.n_contacts < 0:
+            self.n_contacts = len(self.r)
 
     @property
     def dof(self):
@@ -72,59 +85,102 @@ class ActiveSystem:
         """Non-translational modes: d N' - d."""
         return observables.n_modes_total(self.n, self.d)
 
+    @property
+    def distributed(self):
+        return self.rows is not None
+
     def blocks(self, kind):
-        """Per-contact blocks K_ij of Eq. (1)."""
+        """Per-contact (or per-half-edge) blocks K_ij of Eq. (1)."""
         return hessian.contact_blocks(self.rij, self.r, self.sigma, self.alpha, self.eps, kind)
+
+    def particle_keys(self, comm):
+        """Particle id of each of this rank's operator rows (rank-count independent keys)."""
+        if self.distributed:
+            return self.ids
+        lo, hi = hessian.row_range(self.n, comm)
+        return self.active[lo:hi]
+
+    def gather_active(self, comm):
+        """Collective: on rank 0 the particle ids in active-number order (None elsewhere);
+        sets ``active`` there to the sorted ids, the order vectors are written in."""
+        if not self.distributed:
+            return self.active
+        got = comm.tompi4py().gather(self.ids, root=0)
+        if got is None:
+            return None
+        ids = np.concatenate(got)
+        self.active = np.sort(ids)
+        return ids
+
+    def gathered(self, comm):
+        """Collective: the replicated layout of a distributed system on rank 0 (in its active
+        numbering; None elsewhere): every contact once, i < j.  Small systems only."""
+        mpi = comm.tompi4py()
+        up = self.i < self.j
+        parts = mpi.gather((self.i[up], self.j[up], self.rij[up], self.r[up], self.sigma[up]),
+                           root=0)
+        ids = self.gather_active(comm)
+        if parts is None:
+            return None
+        cat = [np.concatenate(col) for col in zip(*parts)]
+        return ActiveSystem(
+            n=self.n, d=self.d, active=ids, i=cat[0], j=cat[1], rij=cat[2], r=cat[3],
+            sigma=cat[4], alpha=self.alpha, eps=self.eps, n_rattlers=self.n_rattlers,
+            n_iso=self.n_iso, pressure=self.pressure, max_force=self.max_force)
+
+
+def check_vibrates(n, d, n_all_contacts, n_active, n_contacts, n_iso):
+    """ParjamError/UnjammedError for a network that cannot vibrate."""
+    if n_all_contacts == 0:
+        raise ParjamError("the packing has no contacts (no overlapping pairs): nothing to "
+                          "vibrate; is it a jammed packing?")
+    if n_active == 0:
+        raise UnjammedError(f"unjammed packing: all {n} particles are rattlers")
+    if n_contacts < n_iso:
+        raise UnjammedError(f"unjammed packing: Nc = {n_contacts} contacts among "
+                            f"N' = {n_active} non-rattlers, fewer than the isostatic "
+                            f"Nc_iso = {n_iso}: at least {n_iso - n_contacts} "
+                            f"floppy mode(s) beyond the {d} translations")
 
 
 def active_system(pack, net=None):
-    """The non-rattler system of a packing; ParjamError/UnjammedError if it cannot vibrate."""
+    """The non-rattler system of a packing, replicated on every rank (the serial network);
+    ParjamError/UnjammedError if it cannot vibrate."""
     net = net if net is not None else network.analyze(pack)
-    if len(net.all_contacts) == 0:
-        raise ParjamError("the packing has no contacts (no overlapping pairs): nothing to "
-                          "vibrate; is it a jammed packing?")
-    if net.n_active == 0:
-        raise UnjammedError(f"unjammed packing: all {pack.n} particles are rattlers")
-    if net.n_contacts < net.n_iso:
-        raise UnjammedError(f"unjammed packing: Nc = {net.n_contacts} contacts among "
-                            f"N' = {net.n_active} non-rattlers, fewer than the isostatic "
-                            f"Nc_iso = {net.n_iso}: at least {net.n_iso - net.n_contacts} "
-                            f"floppy mode(s) beyond the {pack.d} translations")
-    keep = ~net.rattler
-    index = np.cumsum(keep) - 1
-    c = net.contacts
+    check_vibrates(pack.n, pack.d, len(net.all_contacts), net.n_active, net.n_contacts,
+                   net.n_iso)
+    c = network.active_contacts(net)
     return ActiveSystem(
-        n=net.n_active, d=pack.d, active=np.nonzero(keep)[0], i=index[c.i], j=index[c.j],
+        n=net.n_active, d=pack.d, active=np.flatnonzero(~net.rattler), i=c.i, j=c.j,
         rij=c.rij, r=c.r, sigma=c.sigma, alpha=pack.alpha, eps=pack.eps,
         n_rattlers=net.n_rattlers, n_iso=net.n_iso, pressure=net.pressure,
         max_force=net.max_force)
 
 
-def build_matrix(comm, system, blocks):
-    """Distributed MatAIJ (block size d) from per-contact blocks; each rank passes the contacts
-    touching its own rows."""
-    lo, hi = hessian.row_range(system.n, comm)
-    mine = ((system.i >= lo) & (system.i < hi)) | ((system.j >= lo) & (system.j < hi))
-    return hessian.assemble(comm, system.n, system.d, system.i[mine], system.j[mine],
-                            blocks[mine])
+def distributed_system(net):
+    """The non-rattler system of a distributed network (parjam.active): this rank's rows and
+    half-edges only; ParjamError/UnjammedError if it cannot vibrate (collective)."""
+    n_all = net.comm.allreduce(len(net.all_contacts))
+    check_vibrates(net.n, net.d, n_all, net.n_active, net.n_contacts, net.n_iso)
+    c = net.contacts
+    return ActiveSystem(
+        n=net.n_active, d=net.d, active=None, i=c.i, j=c.j, rij=c.rij, r=c.r, sigma=c.sigma,
+        alpha=net.alpha, eps=net.eps, n_rattlers=net.n_rattlers, n_iso=net.n_iso,
+        pressure=net.pressure, max_force=net.max_force, n_contacts=net.n_contacts,
+        rows=net.rows, ids=net.ids)
 
 
-def dynamical_matrix(comm, system, kind):
-    """Eq. (1): the full, relaxed or stress matrix of the non-rattlers."""
-    return build_matrix(comm, system, system.blocks(kind))
+def build_matrix(comm, system, blocks, fmt="aij"):
+    """Distributed MatAIJ or MatSBAIJ (block size d) from per-contact (per-half-edge) blocks:
+    each rank inserts its own rows only."""
+    return hessian.assemble(comm, system.n, system.d, system.i, system.j, blocks,
+                            rows=system.rows, fmt=fmt)
 
 
-def translation_vecs(A, d):
-    """The d normalised uniform translations (exact zero modes of a periodic packing)."""
-    n = A.getSize()[0] // d
-    vecs = []
-    for a in range(d):
-        v = A.createVecRight()
-        arr = v.getArray()
-        arr[:] = 0.0
-        arr.reshape(-1, d)[:, a] = 1.0 / np.sqrt(n)
-        vecs.append(v)
-    return vecs
+def dynamical_matrix(comm, system, kind, fmt="aij"):
+    """Eq. (1): the full, relaxed or stress matrix of the non-rattlers, in the solver's format
+    (SBAIJ for MUMPS Cholesky and its inertia, AIJ for products and KSP)."""
+    return build_matrix(comm, system, system.blocks(kind), fmt)
 
 
 # --- results ---------------------------------------------------------------------------------------
@@ -253,12 +309,16 @@ def compute(comm, system, kind="full", *, k=None, window=None, method="auto", to
         spec = dense_modes(comm, system, kind, k=k, window=window, tol=tol,
                            want_vectors=vectors)
     else:
-        A = dynamical_matrix(comm, system, kind)
+        S = dynamical_matrix(comm, system, kind, fmt="sbaij")
         try:
-            spec = slepc_modes(comm, A, system, kind=kind, method=method, k=k, window=window,
+            spec = slepc_modes(comm, S, system, kind=kind, method=method, k=k, window=window,
                                tol=tol, target=target, want_vectors=vectors, progress=progress)
         finally:
-            A.destroy()
+            S.destroy()
+        if vectors and system.distributed:
+            order = np.argsort(system.gather_active(comm)) if comm.getRank() == 0 else None
+            if spec.vectors is not None:  # rows in the order of the particle ids (the file's)
+                spec.vectors = spec.vectors[:, order]
     spec.seconds = time.perf_counter() - t0
     return spec
 
@@ -299,6 +359,12 @@ def dense_modes(comm, system, kind, *, k, window, tol, want_vectors):
     only rank 0 returns them)."""
     mpi = comm.tompi4py()
     spec, message = None, None
+    if system.distributed:
+        system = system.gathered(comm)
+        if system is not None:  # rows in the order of the particle ids (the file's)
+            order = np.argsort(system.active)
+            system.i, system.j = np.argsort(order)[system.i], np.argsort(order)[system.j]
+            system.active = system.active[order]
     if mpi.Get_rank() == 0:
         try:
             spec = _dense_on_rank0(system, kind, k, window, tol, want_vectors)
@@ -345,33 +411,26 @@ def _dense_on_rank0(system, kind, k, window, tol, want_vectors):
 
 
 # --- SLEPc paths ---------------------------------------------------------------------------------
-class _OptionDefaults:
-    """Set options-database defaults under the ``modes_`` prefix unless the user gave them;
-    remove ours afterwards so later solves start clean."""
-
-    def __init__(self, values):
-        self.values = values
-        self.ours = []
-
-    def __enter__(self):
-        opts = env.petsc().Options()
-        for name, value in self.values.items():
-            if not opts.hasName(PREFIX + name):
-                opts.setValue(PREFIX + name, value)
-                self.ours.append(PREFIX + name)
-        return self
-
-    def __exit__(self, *exc):
-        opts = env.petsc().Options()
-        for name in self.ours:
-            opts.delValue(name)
-
-
 def configure_sinvert(eps):
     """Shift-and-invert with a direct MUMPS Cholesky (LDL^T) factorisation, no Krylov solve."""
     st = eps.getST()
     st.setType("sinvert")
     factor.direct_cholesky(st.getKSP())
+
+
+def finish_setup(eps, S):
+    """The EPS's own options (prefix ``modes_``), then MUMPS ICNTL(13) = 1 and ICNTL(24) = 1 on
+    this EPS's factor only (never through the options database): on more than one rank MUMPS
+    counts pivots (the inertia that slicing and the unstable count need) only with a sequential
+    root front, and null pivots let a floppy network factorise.  Options the user gives under
+    the prefix (-modes_st_mat_mumps_icntl_13 ...) still win: MUMPS reads them at the analysis.
+    With -modes_eps_krylovschur_partitions > 1 SLEPc builds inner solvers from the options
+    alone; give -modes_st_mat_mumps_icntl_13 1 then."""
+    eps.setOptionsPrefix(PREFIX)
+    eps.setFromOptions()
+    ksp = eps.getST().getKSP()
+    ksp.setOperators(S)  # SLEPc replaces it by S - sigma I at setUp; the factor object stays
+    factor.exact_inertia(ksp.getPC(), null_pivots=True)
 
 
 def sinvert_eps(A, k, target, abstol, deflation):
@@ -391,8 +450,7 @@ def sinvert_eps(A, k, target, abstol, deflation):
     eps.setTolerances(tol=abstol)
     eps.setDeflationSpace(deflation)
     configure_sinvert(eps)
-    eps.setOptionsPrefix(PREFIX)
-    eps.setFromOptions()
+    finish_setup(eps, A)
     return eps
 
 
@@ -408,16 +466,15 @@ def slice_eps(S, interval, abstol):
     eps.setConvergenceTest(SLEPc.EPS.Conv.ABS)
     eps.setTolerances(tol=abstol)
     configure_sinvert(eps)
-    eps.setOptionsPrefix(PREFIX)
-    eps.setFromOptions()
+    finish_setup(eps, S)
+    # slicing factorises in an inner EPS that copies only the ST/KSP/PC types: its MUMPS
+    # Cholesky and ICNTLs are set on its own KSP (one partition: same communicator as S)
+    inner = eps.getKrylovSchurKSP()
+    factor.direct_cholesky(inner)
+    if eps.getKrylovSchurPartitions() == 1:
+        inner.setOperators(S)
+        factor.exact_inertia(inner.getPC(), null_pivots=True)
     return eps
-
-
-# in the options database too: the slicing solver builds inner EPS objects from it
-MUMPS_DEFAULTS = {"st_type": "sinvert", "st_ksp_type": "preonly", "st_pc_type": "cholesky",
-                  "st_pc_factor_mat_solver_type": "mumps",
-                  "st_mat_mumps_icntl_13": "1",  # sequential root front: inertia on any ranks
-                  "st_mat_mumps_icntl_24": "1"}  # detect null pivots
 
 
 def mumps_stats(F):
@@ -435,43 +492,70 @@ def mumps_stats(F):
         return {}
 
 
-def slepc_modes(comm, A, system, *, kind, method, tol, k=None, window=None, target=None,
+def slepc_modes(comm, S, system, *, kind, method, tol, k=None, window=None, target=None,
                 want_vectors=False, progress=None):
     """The k lowest modes (method "sinvert", shift-and-invert at ``target``) or the modes in a
-    frequency ``window`` (method "slice", spectrum slicing) of the assembled matrix A of one
-    ``kind``, to residual ``tol`` relative to ||A||_inf, with their observables."""
+    frequency ``window`` (method "slice", spectrum slicing) of the assembled SBAIJ matrix S of
+    one ``kind`` (MUMPS reports the inertia of SBAIJ factors only), to residual ``tol``
+    relative to ||S||_inf, with their observables."""
     PETSc = env.petsc()
-    norm = A.norm(PETSc.NormType.INFINITY)
+    norm = S.norm(PETSc.NormType.INFINITY)
     zero_tol = ZERO_TOL * norm
     abstol = 0.1 * tol * norm  # SLEPc's estimate, with a margin for the true residual check
     log = progress or (lambda msg: None)
-    with _OptionDefaults(MUMPS_DEFAULTS):
-        if method == "sinvert":
-            target = -zero_tol if target is None else float(target)
-            if abs(target) < zero_tol:  # D - target I singular beyond the deflated translations
-                raise ParjamError(f"--target {target:g} lies inside the zero cluster |lambda| < "
-                                  f"{zero_tol:.2e}, where the shifted matrix is singular for a "
-                                  f"floppy network: use a target <= {-zero_tol:.2e} (the default)")
-            deflation = translation_vecs(A, system.d)
-            M = A.convert("sbaij")  # MUMPS reports the inertia of SBAIJ factors only
-            eps = sinvert_eps(M, k, target, abstol, deflation)
-        else:
-            interval = window_interval(window, norm)
-            M = A.convert("sbaij")
-            eps = slice_eps(M, interval, abstol)
-        try:
-            spec = _solve_and_collect(comm, eps, A, system, kind=kind, method=method, k=k,
+    deflation = []
+    if method == "sinvert":
+        target = -zero_tol if target is None else float(target)
+        if abs(target) < zero_tol:  # D - target I singular beyond the deflated translations
+            raise ParjamError(f"--target {target:g} lies inside the zero cluster |lambda| < "
+                              f"{zero_tol:.2e}, where the shifted matrix is singular for a "
+                              f"floppy network: use a target <= {-zero_tol:.2e} (the default)")
+        deflation = translations.vectors(S, system.d)
+        eps = sinvert_eps(S, k, target, abstol, deflation)
+    else:
+        eps = slice_eps(S, window_interval(window, norm), abstol)
+    try:
+        with SliceInertiaOptions(comm if method == "slice" else None):
+            spec = _solve_and_collect(comm, eps, S, system, kind=kind, method=method, k=k,
                                       window=window, tol=tol, norm=norm, target=target,
                                       want_vectors=want_vectors, log=log)
-        finally:
-            try:
-                eps.destroy()
-            except PETSc.Error:  # after a failed solve SLEPc may refuse (a DS matrix checked
-                pass  # out): the solve's own error, already raised, is the one to report
-            M.destroy()
-            for v in (deflation if method == "sinvert" else []):
-                v.destroy()
+    finally:
+        try:
+            eps.destroy()
+        except PETSc.Error:  # after a failed solve SLEPc may refuse (a DS matrix checked
+            pass  # out): the solve's own error, already raised, is the one to report
+        translations.destroy(deflation)
     return spec
+
+
+class SliceInertiaOptions:
+    """The one place parjam writes PETSc options: -modes_st_mat_mumps_icntl_13 1 and _24 1,
+    only while a slicing solve runs on more than one rank, only those the user did not give,
+    removed after.  Why: slicing re-creates its MUMPS factor whenever the shifted matrix is a
+    new object (SLEPc's inner EPS, PCSetUp with a different nonzero state), so ICNTLs set on a
+    factor object are lost, and the only settings the new factor reads are its prefix's
+    options (``modes_st_``, the prefix of this EPS's ST, no other object's).  MUMPS needs
+    ICNTL(13) = 1 on several ranks to count pivots; ICNTL(24) = 1 for MatGetInertia."""
+
+    NAMES = ("st_mat_mumps_icntl_13", "st_mat_mumps_icntl_24")
+
+    def __init__(self, comm):
+        self.active = comm is not None and comm.getSize() > 1 and env.has_mumps()
+        self.ours = []
+
+    def __enter__(self):
+        if self.active:
+            opts = env.petsc().Options()
+            for name in self.NAMES:
+                if not opts.hasName(PREFIX + name):
+                    opts.setValue(PREFIX + name, "1")
+                    self.ours.append(PREFIX + name)
+        return self
+
+    def __exit__(self, *exc):
+        opts = env.petsc().Options()
+        for name in self.ours:
+            opts.delValue(name)
 
 
 def _solve_and_collect(comm, eps, A, system, *, kind, method, k, window, tol, norm, target,

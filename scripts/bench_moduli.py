@@ -76,7 +76,7 @@ def scipy_matrix(an):
 
     from parjam import hessian
 
-    brow, bcol, bvals = hessian.local_block_csr(an.n, 0, an.n, an.pi, an.pj, an.blocks)
+    brow, bcol, bvals = hessian.half_edge_block_csr(an.n, 0, an.n, an.pi, an.pj, an.blocks)
     return sp.bsr_matrix((bvals, bcol, np.searchsorted(brow, np.arange(an.n + 1))),
                          shape=(an.n * an.d, an.n * an.d)).tocsc()
 
@@ -87,14 +87,14 @@ def baseline(path):
     import numpy as np
     import scipy.sparse.linalg as spl
 
-    from parjam import io, moduli
+    from parjam import env, io, moduli
 
     pack = io.read_packing(path)
     rss0 = peak_rss_mb()
     t0 = time.perf_counter()
-    an = moduli.active_network(pack)
+    an = moduli.active_network(pack, env.petsc().COMM_SELF)  # every half-edge here
     D = scipy_matrix(an)
-    rhs = moduli.strain_force_fields(an.n, an.pi, an.pj, an.rij, an.blocks)
+    rhs = moduli.strain_force_fields(0, an.n, an.pi, an.pj, an.rij, an.blocks)
     t_build = time.perf_counter() - t0
     d = an.d
     t0 = time.perf_counter()
@@ -107,9 +107,9 @@ def baseline(path):
     Q = X.T @ U
     t_solve = time.perf_counter() - t0
     res = np.linalg.norm(D @ U - X, axis=0) / np.linalg.norm(X, axis=0)
-    c_aff = moduli.affine_tensor(an.rij, an.blocks, pack.volume)
+    c_aff = 0.5 * moduli.affine_tensor(an.rij, an.blocks, pack.volume)  # each contact twice
     c_u = moduli.energy_tensor(c_aff, Q, d, pack.volume)
-    s = moduli.tensile_stress(an.rij, an.r, an.sigma, pack.alpha, pack.eps, pack.volume)
+    s = 0.5 * moduli.tensile_stress(an.rij, an.r, an.sigma, pack.alpha, pack.eps, pack.volume)
     Bt = moduli.stress_strain_tensor(moduli.lagrangian_tensor(c_u, s), s)
     out = {"t_build": t_build, "t_factor": t_factor, "t_solve": t_solve,
            "rss_before_mb": rss0, "rss_peak_mb": peak_rss_mb(),

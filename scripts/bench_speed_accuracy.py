@@ -82,7 +82,7 @@ FACTORS = {  # name: (matrix type, PC type, package, extra options)
 
 
 def run_sinvert(system, k, tol, ncv=None, factor="mumps-cholesky", mpd=None):
-    from parjam import env, spectrum
+    from parjam import env, spectrum, translations
 
     PETSc, SLEPc = env.petsc(), env.slepc()
     comm = PETSc.COMM_WORLD
@@ -97,7 +97,7 @@ def run_sinvert(system, k, tol, ncv=None, factor="mumps-cholesky", mpd=None):
         opts.setValue(spectrum.PREFIX + key, val)
     A = spectrum.dynamical_matrix(comm, system, "full")
     norm = A.norm(PETSc.NormType.INFINITY)
-    defl = spectrum.translation_vecs(A, system.d)
+    defl = translations.vectors(A, system.d)
     t0 = time.perf_counter()
     M = A.convert(mtype) if mtype != "aij" else A
     eps = spectrum.sinvert_eps(M, k, -spectrum.ZERO_TOL * norm, 0.1 * tol * norm, defl)

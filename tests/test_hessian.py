@@ -4,7 +4,7 @@ row-block sums, exact preallocation, and the same matrix on 1 and 2 ranks (dense
 import numpy as np
 import pytest
 
-from parjam import env, hessian, io, network, spectrum
+from parjam import env, hessian, io, network, spectrum, translations
 
 PETSc = env.petsc()
 DATA = "tests/data"
@@ -86,7 +86,7 @@ def test_symmetric_zero_row_sums_no_mallocs(packing, kind):
     assert np.abs(H - H.T).max() <= 1e-14 * scale
     row_block_sums = H.reshape(system.n, system.d, system.n, system.d).sum(axis=2)
     assert np.abs(row_block_sums).max() <= 1e-13 * scale
-    for t in spectrum.translation_vecs(A, system.d):  # the same statement as D t = 0
+    for t in translations.vectors(A, system.d):  # the same statement as D t = 0
         y = t.duplicate()
         A.mult(t, y)
         assert y.norm() <= 1e-13 * scale

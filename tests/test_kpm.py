@@ -5,7 +5,7 @@ independent of the rank layout, 1 vs 2 ranks, eigenvalues outside the bounds, an
 import numpy as np
 import pytest
 
-from parjam import env, hessian, io, kpm, observables, spectrum
+from parjam import env, hessian, io, kpm, observables, spectrum, translations
 from parjam.errors import ParjamError
 
 PETSc = env.petsc()
@@ -130,8 +130,8 @@ def test_translations_projected_out():
     A = spectrum.dynamical_matrix(WORLD, s, "full")
     v = A.createVecRight()
     kpm.fill_probe(v, 1, 0, "gaussian")
-    kpm.project_translations(v, s.d)
-    for t in spectrum.translation_vecs(A, s.d):
+    translations.project(v, s.d)
+    for t in translations.vectors(A, s.d):
         assert abs(t.dot(v)) < 1e-12 * v.norm()
         t.destroy()
     v.destroy()

@@ -17,12 +17,11 @@ def add_parser(sub):
 def run(args):
     from mpi4py import MPI
 
-    from parjam.io import read_packing
-    from parjam.network import analyze
+    from parjam import rowio
 
     rank = MPI.COMM_WORLD.Get_rank()
-    for path in args.files:
-        net = analyze(read_packing(path))
+    for path in args.files:  # each rank reads its rows; the network is distributed (parjam.active)
+        net = rowio.network(MPI.COMM_WORLD, path)
         if rank != 0:
             continue
         s = defined(net.summary())

@@ -1,0 +1,236 @@
+"""The one distributed active network of a packing: the contacts and non-rattlers that every
+analysis (hessian, spectrum, kpm, moduli, analyze) builds on, with O(N/P) memory per rank.
+
+Built on parjam.domain's slabs (issue 19):
+
+1. ``SlabDomain.balanced`` + ``migrate``: each rank owns the particles of its slab, whatever
+   rows it started with (e.g. its row range of the packing file);
+2. one ghost exchange (``halo`` of width max sigma) and ``neighbour_pairs``: the contacts of the
+   owned particles, r_ij < sigma_ij = (s_i + s_j)/2, as *half-edges* (i owned, j owned or ghost),
+   so every contact appears exactly twice over all ranks, once on the owner of each end.  The
+   separation is the serial one (``system.pair_separation`` of the wrapped positions), so the
+   geometry is bit-identical to ``network.analyze``;
+3. rattlers (fewer than d + 1 contacts) removed iteratively as in ``network.find_rattlers``: each
+   sweep counts the owned particles' live contacts, the ghosts' "alive" flags refreshed by one
+   ``halo.pull``, and one allreduce of the removed count stops the loop;
+4. the parallel re-index: the non-rattlers are numbered 0..N'-1 rank by rank (an exclusive
+   scan of the owned active counts), so each rank's owned active particles are the contiguous
+   block rows [lo, hi) of every operator; the ghosts' numbers come by one pull.  This numbering
+   is *not* the serial one (sorted by particle id) unless P = 1; ``ids`` maps it back.
+
+Global numbers (N', Nc, Nc_iso, pressure, stress, energy, forces) are allreduced sums of the
+half-edges (each contact counted with weight 1/2); nothing of length N or Nc is gathered.
+Conventions and the paper's definitions are parjam.network's (module doc there).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from parjam import hessian, potential
+from parjam.domain import SlabDomain, as_mpi
+from parjam.network import NetworkNumbers
+from parjam.system import pair_separation, sphere_volume
+
+
+@dataclass
+class Contacts:
+    """Local half-edges: i owned, j owned or ghost, both given by their *global active numbers*
+    (or, for ``all_contacts``, rows of [owned; ghosts]); rij = x_j - x_i."""
+
+    i: np.ndarray
+    j: np.ndarray
+    rij: np.ndarray
+    r: np.ndarray
+    sigma: np.ndarray
+
+    def __len__(self):
+        return len(self.i)
+
+    @property
+    def unit(self):
+        """Unit vectors n = r_ij / r."""
+        return self.rij / self.r[:, None]
+
+    def subset(self, mask):
+        return Contacts(self.i[mask], self.j[mask], self.rij[mask], self.r[mask],
+                        self.sigma[mask])
+
+
+@dataclass
+class ActiveNetwork(NetworkNumbers):
+    """This rank's share of the contact network (see the module doc); N', Nc, z, dz, ... and
+    ``summary`` as network.Network's."""
+
+    comm: object  # mpi4py communicator
+    d: int
+    n: int  # N, all particles
+    n_active: int  # N', non-rattlers (global)
+    n_contacts: int  # Nc among non-rattlers (global)
+    lo: int  # owned active rows [lo, hi)
+    hi: int
+    L: np.ndarray  # box edges
+    alpha: float
+    eps: float
+    phi: float
+    ids: np.ndarray  # global particle ids of the owned active rows lo..hi-1
+    owned_ids: np.ndarray  # global ids of every owned particle (rattlers too)
+    rattler: np.ndarray  # owned particles: rattler flag
+    contacts: Contacts  # half-edges among non-rattlers, global active numbers
+    all_contacts: Contacts  # every half-edge (rattlers too), i and j rows of [owned; ghosts]
+    all_ids_j: np.ndarray  # global particle id of all_contacts.j
+    energy: float
+    stress: np.ndarray  # (1/V) sum_contacts -V'(r) r_a r_b / r (compressive positive)
+    max_force: float
+    mean_force: float
+
+    @property
+    def volume(self):
+        return float(np.prod(self.L))
+
+    @property
+    def rows(self):
+        """The owned active row range (block rows of the operators)."""
+        return self.lo, self.hi
+
+    @property
+    def n_local(self):
+        return self.hi - self.lo
+
+    @property
+    def dof(self):
+        return self.n_active * self.d
+
+    @property
+    def n_rattlers(self):
+        return self.n - self.n_active
+
+    @property
+    def pressure(self):
+        return float(np.trace(self.stress) / self.d)
+
+    def blocks(self, kind="full"):
+        """Per-half-edge blocks K_ij of Eq. (1) (parjam.hessian)."""
+        c = self.contacts
+        return hessian.contact_blocks(c.rij, c.r, c.sigma, self.alpha, self.eps, kind)
+
+
+def half_edges(dom, x, diam, ids, cutoff):
+    """Every contact of the owned particles as half-edges (rows of [owned; ghosts]), sorted by
+    (owned row, id of the other end), the halo plan and the ghosts' global ids."""
+    halo = dom.halo(x, ids, cutoff)
+    n_own = len(x)
+    pts = np.concatenate([x, halo.pull(x)])  # wrapped positions: the serial separation
+    dia = np.concatenate([diam, halo.pull(diam)])
+    gid = np.concatenate([ids, halo.ids])
+    pairs = dom.neighbour_pairs(x, halo, cutoff)
+    a, b = pairs[:, 0], pairs[:, 1]
+    rij = pair_separation(pts[a], pts[b], dom.L)
+    r = np.sqrt(np.einsum("ij,ij->i", rij, rij))
+    sigma = 0.5 * (dia[a] + dia[b])
+    c = r < sigma
+    a, b, rij, r, sigma = a[c], b[c], rij[c], r[c], sigma[c]
+    both = b < n_own  # owned-owned: found once, stored from both ends
+    hi = np.concatenate([a, b[both]])
+    hj = np.concatenate([b, a[both]])
+    rij = np.concatenate([rij, -rij[both]])
+    r, sigma = np.concatenate([r, r[both]]), np.concatenate([sigma, sigma[both]])
+    order = np.lexsort((gid[hj], hi))
+    return Contacts(hi[order], hj[order], rij[order], r[order], sigma[order]), halo, gid
+
+
+def remove_rattlers(comm, halo, n_own, d, edges):
+    """Owned rattler mask: fewer than d + 1 live contacts, removed iteratively (each sweep one
+    pull of the ghosts' flags and one allreduce)."""
+    alive = np.ones(n_own, dtype=bool)
+    while True:
+        flag = np.concatenate([alive, halo.pull(alive)])
+        live = flag[edges.i] & flag[edges.j]
+        deg = np.bincount(edges.i[live], minlength=n_own)
+        new = alive & (deg < d + 1)
+        if comm.allreduce(int(new.sum())) == 0:
+            return ~alive
+        alive &= ~new
+
+
+def renumber(comm, halo, alive):
+    """Global active numbers of the owned rows (-1 for rattlers) and of the ghosts: the owned
+    non-rattlers of rank r are lo_r .. hi_r - 1, lo_r the exclusive scan of the counts."""
+    n_loc = int(alive.sum())
+    hi = comm.scan(n_loc)
+    lo = hi - n_loc
+    number = np.full(len(alive), -1, dtype=np.int64)
+    number[alive] = lo + np.arange(n_loc)
+    return np.concatenate([number, halo.pull(number)]), lo, hi
+
+
+def build(comm, x, diam, ids, L, alpha=2.0, eps=1.0):
+    """The distributed active network from any distribution of the particles over the ranks
+    (rows ``x``, ``diam`` with global ``ids``; collective).  ``L`` is the box edge (scalar) or
+    edges."""
+    comm = as_mpi(comm)
+    x = np.asarray(x, dtype=np.float64)
+    d = x.shape[1]
+    dom = SlabDomain.balanced(comm, L, x)
+    x, ids, f = dom.migrate(x, ids, {"diam": np.asarray(diam, dtype=np.float64)})
+    diam = f["diam"]
+    n = comm.allreduce(len(ids))
+    dmax = comm.allreduce(float(diam.max()) if len(diam) else 0.0, op=max_op())
+    if not 2.0 * dmax < dom.L.min():
+        raise ValueError(f"box edge {dom.L.min():.3g} is not larger than twice the neighbour "
+                         f"cutoff {dmax:.3g}: too few particles for this box")
+    allc, halo, gid = half_edges(dom, x, diam, ids, dmax * (1.0 + 1e-9))
+    rattler = remove_rattlers(comm, halo, len(x), d, allc)
+    number, lo, hi = renumber(comm, halo, ~rattler)
+    keep = (number[allc.i] >= 0) & (number[allc.j] >= 0)
+    act = allc.subset(keep)
+    act = Contacts(number[act.i], number[act.j], act.rij, act.r, act.sigma)
+    volume = float(np.prod(dom.L))
+    dv = potential.dV(allc.r, allc.sigma, alpha, eps)
+    w = -(dv / allc.r)
+    stress = 0.5 * np.einsum("k,ka,kb->ab", w, allc.rij, allc.rij) / volume
+    force = np.zeros_like(x)  # on each owned particle, from all its contacts
+    for a in range(d):
+        force[:, a] = np.bincount(allc.i, weights=(dv / allc.r) * allc.rij[:, a],
+                                  minlength=len(x))
+    fnorm = np.sqrt(np.einsum("ij,ij->i", force, force))[~rattler]
+    fmag = np.abs(potential.dV(act.r, act.sigma, alpha, eps))
+    sums = comm.allreduce(np.array([
+        len(act), 0.5 * potential.energy(allc.r, allc.sigma, alpha, eps).sum(), 0.5 * fmag.sum(),
+        sphere_volume(diam, d).sum()]))
+    stress = comm.allreduce(stress)
+    nc = int(round(sums[0])) // 2
+    return ActiveNetwork(
+        comm=comm, d=d, n=n, n_active=comm.allreduce(hi - lo), n_contacts=nc, lo=lo, hi=hi,
+        L=dom.L, alpha=float(alpha), eps=float(eps), phi=float(sums[3] / volume),
+        ids=ids[~rattler], owned_ids=ids, rattler=rattler, contacts=act, all_contacts=allc,
+        all_ids_j=gid[allc.j], energy=float(sums[1]), stress=stress,
+        max_force=comm.allreduce(float(fnorm.max()) if len(fnorm) else 0.0, op=max_op()),
+        mean_force=float(sums[2] / nc) if nc else 0.0)
+
+
+def max_op():
+    from mpi4py import MPI
+    return MPI.MAX
+
+
+def min_op():
+    from mpi4py import MPI
+    return MPI.MIN
+
+
+def row_block(n, comm):
+    """This rank's contiguous block of n rows (the same split as PETSc's): (start, stop)."""
+    comm = as_mpi(comm)
+    size, rank = comm.Get_size(), comm.Get_rank()
+    base, extra = divmod(n, size)
+    start = rank * base + min(rank, extra)
+    return start, start + base + (1 if rank < extra else 0)
+
+
+def from_packing(comm, pack):
+    """The distributed network of a packing every rank holds (tests and small systems): each
+    rank starts from its row block, as if it had read only that."""
+    start, stop = row_block(pack.n, comm)
+    return build(comm, pack.pos[start:stop], pack.diam[start:stop],
+                 np.arange(start, stop, dtype=np.int64), pack.L, pack.alpha, pack.eps)
