@@ -123,11 +123,12 @@ class SlabEngine:
         self.v = np.ascontiguousarray(self.v)
         self.kernel = kernels.FireKernel(self.xu, self.v, self.f, self.ref, self.pi, self.pj,
                                          self.pos, self.pdiam, self.sums)
-        self._refresh(first=True)
+        self._refresh()
 
-    def _refresh(self, first=False):
+    def _refresh(self):
         """The ghosts' positions from their owners (collective; a no-op on one rank, where
         every ghost is an image of an owned particle)."""
+        self.fresh = True
         if self.size == 1:
             return
         with event(HALO):
@@ -141,7 +142,8 @@ class SlabEngine:
     # --- forces and the fused FIRE step ---------------------------------------------------------
     def start(self):
         """Forces at the current positions and the global FireSums (collective)."""
-        self._refresh()
+        if not self.fresh:  # the positions were moved from outside since the last refresh
+            self._refresh()
         self._call(kernels.FIRE_FORCES, 0.0, False, 0.0, 1.0, 0.0)
         return self._reduce()
 
@@ -164,6 +166,7 @@ class SlabEngine:
             stale = self._call(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, dt, reset, back,
                                mix_v, mix_f, stale2=(0.5 * self.skin) ** 2)
             if stale:
+                self.fresh = False
                 self.rebuild()
                 self._call(kernels.FIRE_FORCES, dt, reset, back, mix_v, mix_f)
             return self._reduce()
@@ -172,6 +175,7 @@ class SlabEngine:
         if reset:
             bound += 0.5 * dt * last.vmax
         self._call(kernels.FIRE_UPDATE, dt, reset, back, mix_v, mix_f)
+        self.fresh = False
         if (last.disp + bound) * (1.0 + 1e-6) >= 0.5 * self.skin:
             self.rebuild()
         else:
