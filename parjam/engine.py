@@ -142,6 +142,9 @@ class SlabEngine:
     # --- forces and the fused FIRE step ---------------------------------------------------------
     def start(self):
         """Forces at the current positions and the global FireSums (collective)."""
+        return self._forces()
+
+    def _forces(self):
         if not self.fresh:  # the positions were moved from outside since the last refresh
             self._refresh()
         self._call(kernels.FIRE_FORCES, 0.0, False, 0.0, 1.0, 0.0)
@@ -152,7 +155,7 @@ class SlabEngine:
         pairs) and the forces and sums recomputed on it (collective): after it the state
         depends on positions and velocities only, as after a restart from them."""
         self.rebuild(rebalance=True)
-        return self.start()
+        return self._forces()
 
     def step(self, dt, reset, mix_v, mix_f, last):
         """One FIRE step (see ``parjam_fire_step``): if ``reset`` step half back and zero v;
