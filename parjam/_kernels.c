@@ -306,3 +306,119 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
     *sorted = !unordered;
     return count <= cap ? count : -count;
 }
+
+/* Neighbour search of one slab (kernels.slab_pairs, parjam.engine): n search points -- a rank's
+ * owned particles (kind 0), images of its own particles across the periodic boundary (kind 1)
+ * and ghosts of other ranks (kind 2) -- open along axis 0 (the halo is unwrapped there) and
+ * periodic with edge L along the others.  A pair of points closer than ``cutoff`` is kept when
+ * one end is an owned particle and the other has a larger global id ``gid``; a pair whose upper
+ * end is an own image is kept only from an owned lower end (each physical pair once).  The pairs
+ * come out as rows ``row[a]`` < ... of the force arrays, grouped by their lower end in the order
+ * ``low`` (kinds 0 and 2 by global id) and, within a group, by the upper end's global id: the
+ * global (i, j) order, so the contact forces on a particle are summed in the same order on any
+ * number of ranks.  Cells: nx of edge w0 along axis 0 from x0min, nc of edge L / nc along the
+ * others (every cell once when nc < 3).  Scratch: start (ncells + 1), order, cellof (n), sp (n d).
+ * Returns the number of pairs, or -(number needed) when cap is too small. */
+int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double cutoff,
+                          double x0min, double w0, int64_t nx, int64_t nc, const int64_t *row,
+                          const int64_t *gid, const int64_t *kind, int64_t nlow,
+                          const int64_t *low, int64_t *start, int64_t *order, int64_t *cellof,
+                          double *sp, int64_t cap, int64_t *pi, int64_t *pj)
+{
+    int64_t ncells = nx;
+    for (int a = 1; a < d; a++)
+        ncells *= nc;
+    for (int64_t c = 0; c <= ncells; c++)
+        start[c] = 0;
+    const double scale = nc / L;
+    for (int64_t k = 0; k < n; k++) {
+        int64_t m = (int64_t)((pos[k * d] - x0min) / w0);
+        int64_t c = m < 0 ? 0 : (m >= nx ? nx - 1 : m);
+        for (int a = 1; a < d; a++) {
+            m = (int64_t)(pos[k * d + a] * scale);
+            c = c * nc + (m < 0 ? 0 : (m >= nc ? nc - 1 : m));
+        }
+        cellof[k] = c;
+        start[c + 1]++;
+    }
+    for (int64_t c = 0; c < ncells; c++)
+        start[c + 1] += start[c];
+    for (int64_t k = 0; k < n; k++)
+        order[start[cellof[k]]++] = k;
+    for (int64_t c = ncells; c > 0; c--)
+        start[c] = start[c - 1];
+    start[0] = 0;
+    for (int64_t q = 0; q < n; q++)
+        for (int a = 0; a < d; a++)
+            sp[q * d + a] = pos[order[q] * d + a];
+    const double cut2 = cutoff * cutoff;
+    const int wide = nc >= 3;        /* periodic neighbours m-1, m, m+1; else every cell once */
+    const int64_t span = wide ? 3 : nc;
+    const int64_t span2 = d == 3 ? span : 1;
+    int64_t count = 0;
+    for (int64_t t = 0; t < nlow; t++) {
+        const int64_t i = low[t];
+        const int64_t first = count;
+        int64_t m[3] = {0, 0, 0};
+        int64_t ci = cellof[i];
+        for (int a = d - 1; a >= 1; a--) {
+            m[a] = ci % nc;
+            ci /= nc;
+        }
+        m[0] = ci;
+        for (int64_t o0 = -1; o0 <= 1; o0++) {
+            const int64_t t0 = m[0] + o0;
+            if (t0 < 0 || t0 >= nx)
+                continue;
+            for (int64_t o1 = 0; o1 < span; o1++)
+                for (int64_t o2 = 0; o2 < span2; o2++) {
+                    int64_t c = t0;
+                    const int64_t oo[3] = {0, o1, o2};
+                    for (int a = 1; a < d; a++) {
+                        int64_t tt = wide ? m[a] + oo[a] - 1 : oo[a];
+                        if (tt < 0)
+                            tt += nc;
+                        else if (tt >= nc)
+                            tt -= nc;
+                        c = c * nc + tt;
+                    }
+                    for (int64_t q = start[c]; q < start[c + 1]; q++) {
+                        const int64_t j = order[q];
+                        if (gid[j] <= gid[i] || (kind[i] != 0 && kind[j] != 0))
+                            continue;
+                        double r2 = 0.0;
+                        for (int a = 0; a < d; a++) {
+                            double x = sp[q * d + a] - pos[i * d + a];
+                            if (a > 0 && (x > 0.5 * L || x < -0.5 * L))
+                                x -= L * rint(x / L);
+                            r2 += x * x;
+                        }
+                        if (r2 > cut2)
+                            continue;
+                        if (count < cap) {
+                            pi[count] = i;
+                            pj[count] = j; /* a search point until the row is sorted */
+                        }
+                        count++;
+                    }
+                }
+        }
+        if (count <= cap) {
+            /* the group of i by the upper end's global id (insertion sort of a few entries) */
+            for (int64_t p = first + 1; p < count; p++) {
+                const int64_t key = pj[p];
+                int64_t q = p - 1;
+                while (q >= first && gid[pj[q]] > gid[key]) {
+                    pj[q + 1] = pj[q];
+                    q--;
+                }
+                pj[q + 1] = key;
+            }
+            for (int64_t p = first; p < count; p++) {
+                pi[p] = row[pi[p]];
+                pj[p] = row[pj[p]];
+            }
+        }
+    }
+    return count <= cap ? count : -count;
+}

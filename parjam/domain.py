@@ -239,3 +239,19 @@ class SlabDomain:
         pairs = cKDTree(pts, boxsize=box).query_pairs(cutoff, output_type="ndarray")
         pairs = pairs[pairs[:, 0] < n_own].astype(np.int64)
         return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def send_rows(comm, dest, ids, fields=None):
+    """Send row k of ``ids`` and of every per-particle array in ``fields`` to rank ``dest[k]``
+    (collective); returns (ids, fields) of the rows received, sorted by id.  The packing engine
+    (parjam.engine) hands its slabs back to PETSc's contiguous row blocks with it."""
+    comm = as_mpi(comm)
+    dest = np.asarray(dest, dtype=np.int64)
+    fields = dict(fields or {})
+    order = np.argsort(dest, kind="stable")
+    counts = np.bincount(dest, minlength=comm.Get_size())
+    ids_new, rcounts = _exchange(comm, np.asarray(ids, dtype=np.int64)[order], counts)
+    out = {k: _exchange_known(comm, np.asarray(fields[k])[order], counts, rcounts)
+           for k in sorted(fields)}
+    keep = np.argsort(ids_new, kind="stable")
+    return ids_new[keep], {k: v[keep] for k, v in out.items()}

@@ -1,6 +1,6 @@
 """FIRE (Bitzek et al., PRL 97, 170201 (2006)) to a force tolerance, one fused compiled step per
-iteration (ForceField.fire_step: update, forces and partial sums in one kernel call, then one
-allreduce of seven numbers), with the choice of today's parameters or FIRE 2.0 (Guenole et al.,
+iteration on the spatial decomposition (parjam.engine.SlabEngine.step: update, ghost refresh,
+forces and partial sums, then one allreduce of seven numbers), with the choice of today's parameters or FIRE 2.0 (Guenole et al.,
 Comput. Mater. Sci. 175, 109584 (2020), Algorithm 2 and Table 1).
 
 Both variants integrate with semi-implicit Euler (v += dt F, then x += dt v) and step half back
@@ -103,24 +103,31 @@ def control(p, power, step, dt, a, n_pos):
 
 
 def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snapshot=None):
-    """FIRE on ff.x until max|F| < ftol, or the energy falls below e_stop (-> "unjammed").
+    """FIRE on ff's positions until max|F| < ftol, or the energy falls below e_stop
+    (-> "unjammed"), on the spatial decomposition: ``ff.start_engine()`` (parjam.engine) holds
+    each rank's slab of particles, a step is one compiled update + ghost refresh + forces and
+    one allreduce, and the positions return to ff.x at the end.
 
     ``start`` (a FireState) continues an interrupted run from its velocities, time step and
     counters.  Every SNAPSHOT_EVERY steps ``snapshot(make_state)`` is called, if given, on all
-    ranks; ``make_state()`` (collective) returns the current FireState (parjam.checkpoint)."""
+    ranks; ``make_state()`` (collective) returns the current FireState (parjam.checkpoint).
+    At those steps, on several ranks, the decomposition is redone from the positions alone
+    (``SlabEngine.resync``) whether or not a snapshot is taken: sums over particles depend on
+    which rank owns what in round-off, and a run resumed from a snapshot starts its
+    decomposition afresh, so both must meet the same one there to go on bitwise alike."""
     p = params or FireParams()
-    f = ff.vec()
-    v = ff.vec()
-    v.set(0.0)
     dt, a, n_pos, step = p.dt, p.a0, 0, 0
+    v0 = None
     if start is not None:
-        v.array[:] = start.v[ff.lo:ff.hi].ravel()
+        v0 = np.array(start.v[ff.lo:ff.hi], dtype=np.float64)
         dt, a, n_pos, step = start.dt, start.a, start.n_pos, start.step
-    s = ff.fire_start(f, v)
+    eng = ff.start_engine(v0)
+    ff.n_force_calls += 1
+    s = eng.start()
     status = "not converged"
 
     def make_state():
-        return FireState(np.array(ff.gather(v)), dt, a, n_pos, step)
+        return FireState(ff.gather_engine(eng.v), dt, a, n_pos, step)
 
     for step in range(step + 1, p.max_steps + 1):
         if s.energy < e_stop:
@@ -135,14 +142,17 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snaps
         vn2 = dt * dt * s.f2 if reset else s.v2 + 2.0 * dt * s.power + dt * dt * s.f2
         fn = np.sqrt(s.f2)
         mix_v, mix_f = (1.0 - a, a * np.sqrt(vn2) / fn) if fn > 0.0 else (1.0, 0.0)
-        s = ff.fire_step(f, v, dt, reset, mix_v, mix_f, s)
+        ff.n_force_calls += 1
+        s = eng.step(dt, reset, mix_v, mix_f, s)
         if progress is not None and step % 100 == 0:
             progress(f"FIRE step {step}: E/N = {s.energy / ff.n:.3e}, max|F| = {s.fmax:.3e}")
-        if snapshot is not None and step % SNAPSHOT_EVERY == 0:
-            snapshot(make_state)
+        if step % SNAPSHOT_EVERY == 0:
+            if eng.size > 1:
+                s = eng.resync()
+            if snapshot is not None:
+                snapshot(make_state)
+    ff.stop_engine()
     ff.wrap()
-    for vec in (f, v):
-        vec.destroy()
     return MinResult(status, s.energy, s.fmax, fire_steps=step)
 
 

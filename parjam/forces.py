@@ -1,10 +1,16 @@
-"""Energy and forces of one packing whose state lives in distributed PETSc Vecs.
+"""Energy, forces and Hessian of one packing whose positions live in a distributed PETSc Vec
+(PETSc's split into contiguous blocks of particle ids, block size d).
 
-Each rank owns a contiguous range of particles (PETSc's split, block size d).  Positions are
-gathered to every rank (VecScatter to all) only when the Verlet list is rebuilt; each rank then
-searches the pairs that touch its particles (linked cells in compiled code, kernels.cell_pairs;
-in a box of fewer than 3 cells a side a k-d tree of its block and the shell around it) and
-computes the forces on them only.  Between rebuilds a force evaluation fetches
+FIRE does not run here: parjam.fire hands the positions to a ``parjam.engine.SlabEngine``
+(``start_engine``), which spreads the particles over the slabs of the spatial decomposition and
+keeps no array of length N on any rank; at the end (``stop_engine``) they come back to the Vec.
+What needs the whole configuration (Newton's Hessian, file writing, checkpoints) gathers it
+lazily, when asked (``gather``; the gather buffer is dropped when FIRE starts again).
+
+For Newton and single evaluations, positions are gathered when the Verlet list is rebuilt;
+each rank then searches the pairs that touch its particles (linked cells in compiled code,
+kernels.cell_pairs; in a box of fewer than 3 cells a side a k-d tree of its block and the shell
+around it) and computes the forces on them only.  Between rebuilds a force evaluation fetches
 just the positions of the particles those pairs touch (its own and a halo of ghosts, one
 VecScatter).  Forces on a particle are summed over its pairs in global (i, j) order, so they
 are bitwise independent of the number of ranks.  Scalars (energy, max |F|) are reduced over
@@ -14,7 +20,8 @@ the communicator.
 import numpy as np
 
 from parjam import env, hessian, kernels
-from parjam.logevents import ALLREDUCE, ASSEMBLY, FORCE, HALO, REBUILD, event
+from parjam.engine import SlabEngine
+from parjam.logevents import ASSEMBLY, FORCE, HALO, REBUILD, event
 from parjam.system import min_image, neighbour_pairs_touching, pair_geometry, wrap
 
 
@@ -33,7 +40,8 @@ class ForceField:
         self.skin = 0.2 * self.diam.min() if skin is None else skin
         self.lo, self.hi = hessian.row_range(self.n, comm)
         self.x = PETSc.Vec().createMPI(((self.hi - self.lo) * d, self.n * d), bsize=d, comm=comm)
-        self.scatter, self.xall = PETSc.Scatter.toAll(self.x)
+        self.scatter = self.xall = None  # the gather to all ranks, made when asked (gather)
+        self.engine = None  # the SlabEngine while FIRE runs (start_engine)
         self.set_box(L)
         self.n_force_calls = 0
         self.n_rebuilds = 0
@@ -41,8 +49,6 @@ class ForceField:
         self._hess_pairs = None
         self.newton_ksp = None  # its factorisation, kept by minimize.newton
         self.halo_scatter = self.halo_x = None  # see _build_halo
-        self._fire_local = np.zeros(kernels.N_SUMS)  # the fused step's sums on this rank
-        self._fire_key = self._fire_kernel = None  # the kernel bound to its arrays
 
     def set_box(self, L):
         self.L = float(L)
@@ -66,8 +72,14 @@ class ForceField:
         arr[:] = wrap(arr, self.L)
 
     def gather(self, vec=None):
-        """Full (N, d) positions on every rank."""
+        """Full (N, d) positions (or values of ``vec``) on every rank: the lazy gather of what
+        needs the whole configuration.  While FIRE runs on the engine, the positions are first
+        fetched from it."""
         PETSc = env.petsc()
+        if vec is None and self.engine is not None:
+            self.sync_engine()
+        if self.scatter is None:
+            self.scatter, self.xall = PETSc.Scatter.toAll(self.x)
         self.scatter.scatter(self.x if vec is None else vec, self.xall,
                              PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
         return self.xall.array_r.reshape(self.n, self.d)
@@ -168,79 +180,47 @@ class ForceField:
                                           self.local(f))
         return self.mpi.allreduce(e_local)
 
-    # --- the fused FIRE step (parjam.fire) ----------------------------------------------------
-    def fire_start(self, f, v):
-        """Forces at the current positions into f, and the global FIRE sums for velocities v
-        (collective; renews the neighbour list if stale).  Returns ``FireSums``."""
-        self.n_force_calls += 1
-        self._fire_key = None  # new Vecs may sit where destroyed ones were
-        if self._stale(self.x.array_r.reshape(-1, self.d)):
-            self._rebuild(self.gather())
-        self._fire_call(kernels.FIRE_FORCES, f, v, 0.0, False, 0.0, 1.0, 0.0)
-        return self._sums
+    # --- FIRE on the spatial decomposition (parjam.fire) ---------------------------------------
+    def start_engine(self, v_block=None):
+        """A SlabEngine holding the current positions (and ``v_block``, velocities of this rank's
+        block rows) on the slabs (collective).  The gather buffer goes: FIRE holds no N."""
+        self.drop_gather()
+        x = np.array(self.x.array_r).reshape(-1, self.d)
+        self.engine = SlabEngine(self.comm, self.L, self.alpha, self.eps, self.skin, x,
+                                 np.arange(self.lo, self.hi, dtype=np.int64),
+                                 self.diam[self.lo:self.hi], v_block)
+        return self.engine
 
-    def fire_step(self, f, v, dt, reset, mix_v, mix_f, last):
-        """One FIRE step fused with the force evaluation (collective): if ``reset`` step half
-        back and zero v; v += dt F; v = mix_v v + mix_f F; x += dt v; then the forces at the new
-        positions into f and the global sums (``FireSums``) in ONE allreduce.  ``last`` (the
-        previous step's sums) bounds this step's displacement: on several ranks the neighbour
-        list is rebuilt when the largest displacement since the last rebuild plus that bound
-        could reach half the skin (no extra reduction); on one rank the kernel checks the
-        displacement itself.  Forces do not depend on when the list was rebuilt (only touching
-        pairs count, in (i, j) order), so both give the same trajectory."""
-        self.n_force_calls += 1
-        back = -0.5 * dt
-        if self.comm.getSize() == 1 and self.pairs is not None:
-            # the kernel checks the displacement after its update and stops before the forces
-            # when the list has gone stale
-            stale = self._fire_call(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, f, v, dt, reset,
-                                    back, mix_v, mix_f, stale2=(0.5 * self.skin) ** 2)
-            if stale:
-                self._rebuild(self.x.array_r.reshape(self.n, self.d))
-                self._fire_call(kernels.FIRE_FORCES, f, v, dt, reset, back, mix_v, mix_f)
-            return self._sums
-        vmax = 0.0 if reset else last.vmax
-        step = dt * (mix_v * (vmax + dt * last.fmax) + mix_f * last.fmax)
-        if reset:
-            step += 0.5 * dt * last.vmax
-        self._fire_call(kernels.FIRE_UPDATE, f, v, dt, reset, back, mix_v, mix_f)
-        if self.pairs is None or (last.disp + step) * (1.0 + 1e-6) >= 0.5 * self.skin:
-            self._rebuild(self.gather())
-        self._fire_call(kernels.FIRE_FORCES, f, v, dt, reset, back, mix_v, mix_f)
-        return self._sums
+    def block_rows(self, values):
+        """Per-particle ``values`` of the engine's rows, as this rank's block rows (collective)."""
+        ranges = np.asarray(self.x.getOwnershipRanges()) // self.d
+        return self.engine.to_blocks(ranges, values)
 
-    def _fire_call(self, mode, f, v, dt, reset, back, mix_v, mix_f, stale2=0.0):
-        """The kernel call; with FIRE_FORCES, the halo fetch before it and the reduction after
-        it (stores and returns the global FireSums).  With stale2 > 0 returns True when the
-        kernel found the list stale."""
-        key = (f.handle, v.handle, self.n_rebuilds)
-        if self._fire_key != key:  # a new list or new Vecs: bind the kernel to their arrays
-            x = self.x.array.reshape(-1, self.d)
-            pos = x if self.halo_scatter is None else self.halo_x.array_r.reshape(-1, self.d)
-            self._fire_kernel = kernels.FireKernel(
-                x, v.array.reshape(-1, self.d), f.array.reshape(-1, self.d), self.ref_own,
-                self.halo_i, self.halo_j, pos, self.halo_diam, self._fire_local)
-            self._fire_key = key
-        if mode & kernels.FIRE_FORCES and self.halo_scatter is not None:
-            self._halo_positions()  # into the halo Vec the kernel reads
-        with event(FORCE):
-            rc = self._fire_kernel(mode, self.L, dt, reset, back, mix_v, mix_f, stale2,
-                                   self.alpha, self.eps, self.halo_lo, self.halo_hi)
-        if rc:
-            return True
-        if mode & kernels.FIRE_FORCES:
-            self._sums = FireSums(self._reduce(self._fire_local))
-        return False
+    def sync_engine(self):
+        """The engine's positions into the Vec (collective)."""
+        self.x.array[:] = self.block_rows(self.engine.xu).ravel()
 
-    def _reduce(self, local):
-        """The FIRE sums over the ranks: one allreduce of the 7-number buffer (sums of the first
-        four, maxima of the rest)."""
-        if self.comm.getSize() == 1:
-            return local
-        out = np.empty_like(local)
-        with event(ALLREDUCE):
-            self.mpi.Allreduce(local, out, op=_sum_max_op())
+    def gather_engine(self, values):
+        """Full (N, ...) copy of per-particle values of the engine's rows (e.g. velocities) on
+        every rank (collective)."""
+        tmp = self.vec()
+        tmp.array[:] = self.block_rows(values).ravel()
+        out = np.array(self.gather(tmp))
+        tmp.destroy()
         return out
+
+    def stop_engine(self):
+        """The engine's positions back into the Vec, and the engine dropped (collective)."""
+        self.sync_engine()
+        self.n_rebuilds += self.engine.n_rebuilds
+        self.engine = None
+
+    def drop_gather(self):
+        """Free the gather buffer (an (N, d) Vec on every rank) until the next gather."""
+        if self.scatter is not None:
+            self.scatter.destroy()
+            self.xall.destroy()
+            self.scatter = self.xall = None
 
     def max_norm(self, f):
         """max_i |F_i| over all particles (Euclidean norm per particle)."""
@@ -283,8 +263,7 @@ class ForceField:
             self._hess.destroy()
         if self.newton_ksp is not None:
             self.newton_ksp.destroy()
-        self.scatter.destroy()
-        self.xall.destroy()
+        self.drop_gather()
         if self.halo_scatter is not None:
             self.halo_scatter.destroy()
             self.halo_x.destroy()
@@ -295,34 +274,3 @@ def _max():
     from mpi4py import MPI
 
     return MPI.MAX
-
-
-class FireSums:
-    """The global sums of one fused FIRE step (from the 7-number buffer of _kernels.c)."""
-
-    __slots__ = ("energy", "power", "f2", "v2", "fmax", "vmax", "disp")
-
-    def __init__(self, s):
-        self.energy, self.power = float(s[0]), float(s[1])
-        self.f2, self.v2 = float(s[2]), float(s[3])
-        self.fmax, self.vmax, self.disp = (float(np.sqrt(s[4])), float(np.sqrt(s[5])),
-                                           float(np.sqrt(s[6])))
-
-
-_OP = None
-
-
-def _sum_max_op():
-    """MPI op on the FIRE buffer: sums of entries 0-3, maxima of entries 4-6 (commutative)."""
-    global _OP
-    if _OP is None:
-        from mpi4py import MPI
-
-        def combine(inbuf, inoutbuf, datatype):
-            a = np.frombuffer(inbuf, dtype=np.float64)
-            b = np.frombuffer(inoutbuf, dtype=np.float64)
-            b[:4] += a[:4]
-            np.maximum(b[4:], a[4:], out=b[4:])
-
-        _OP = MPI.Op.Create(combine, commute=True)
-    return _OP

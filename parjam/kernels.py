@@ -132,6 +132,11 @@ def library():
     c.argtypes = [ctypes.c_int64, ctypes.c_int, f64, ctypes.c_double, ctypes.c_double,
                   ctypes.c_int, ctypes.c_int64, ctypes.c_int64, wi64, wi64, wi64, w64,
                   ctypes.c_int64, wi64, wi64, ctypes.POINTER(ctypes.c_int)]
+    sl = lib.parjam_slab_pairs
+    sl.restype = ctypes.c_int64
+    sl.argtypes = [ctypes.c_int64, ctypes.c_int, f64, dbl, dbl, dbl, dbl, ctypes.c_int64,
+                   ctypes.c_int64, i64, i64, i64, ctypes.c_int64, i64, wi64, wi64, wi64, w64,
+                   ctypes.c_int64, wi64, wi64]
     _lib = lib
     return _lib
 
@@ -285,3 +290,62 @@ def cell_pairs(pos, L, cutoff, lo, hi):
         return np.stack([pi[:got], pj[:got]], axis=1)
     key = np.sort(pi[:got] * n + pj[:got])
     return np.stack([key // n, key % n], axis=1)
+
+
+def slab_pairs(pos, L, cutoff, row, gid, kind, low):
+    """The pairs of one slab's search points (parjam.engine): ``pos`` (n, d) open along axis 0,
+    folded into [0, L) along the others; ``kind`` 0 for owned particles, 1 for images of owned
+    ones across the periodic boundary, 2 for other ranks' ghosts; ``low`` the points of kinds 0
+    and 2 in global-id order.  Returns (pi, pj), rows ``row[.]`` of the pairs closer than
+    ``cutoff`` with an owned end, each physical pair once, in global (i, j) order (see
+    ``parjam_slab_pairs``).  Compiled cells; the numpy fallback uses a k-d tree."""
+    pos = np.ascontiguousarray(pos, dtype=np.float64)
+    n, d = pos.shape
+    row, gid, kind, low = (np.ascontiguousarray(a, dtype=np.int64) for a in (row, gid, kind, low))
+    if n == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    x0min = float(pos[:, 0].min())
+    span = float(pos[:, 0].max()) - x0min
+    w = cutoff
+    while True:  # cells of edge >= cutoff, at most ~4 per point (a dilute box: coarser cells)
+        nc = max(1, int(L // w))
+        nx = max(1, int(span // w))
+        if nx * nc ** (d - 1) <= 4 * n + 64:
+            break
+        w *= 1.25
+    w0 = span / nx * (1.0 + 1e-12) if span > 0 else 1.0
+    lib = library()
+    if lib is None:
+        _fallback()
+        return _slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low)
+    start = np.empty(nx * nc ** (d - 1) + 1, dtype=np.int64)
+    order, cellof = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    sp = np.empty((n, d))
+    cap = 8 * n + 1024
+    while True:
+        pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
+        got = lib.parjam_slab_pairs(n, d, pos, L, cutoff, x0min, w0, nx, nc, row, gid, kind,
+                                    len(low), low, start, order, cellof, sp, cap, pi, pj)
+        if got >= 0:
+            return pi[:got].copy(), pj[:got].copy()
+        cap = -got
+
+
+def _slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low):
+    """slab_pairs by a k-d tree (the same pairs in the same order)."""
+    from scipy.spatial import cKDTree
+
+    pts = pos.copy()
+    pts[:, 0] -= pts[:, 0].min()
+    box = np.concatenate(([pts[:, 0].max() + 2.0 * cutoff + 1.0], np.full(pos.shape[1] - 1, L)))
+    pts = np.minimum(pts, np.nextafter(box, 0))
+    pr = cKDTree(pts, boxsize=box).query_pairs(cutoff, output_type="ndarray").astype(np.int64)
+    a, b = pr[:, 0], pr[:, 1]
+    swap = gid[a] > gid[b]
+    a, b = np.where(swap, b, a), np.where(swap, a, b)
+    keep = (gid[a] < gid[b]) & (kind[a] != 1) & ((kind[a] == 0) | (kind[b] == 0))
+    a, b = a[keep], b[keep]
+    place = np.empty(len(gid), dtype=np.int64)
+    place[low] = np.arange(len(low))
+    o = np.lexsort((gid[b], place[a]))
+    return row[a[o]], row[b[o]]

@@ -3,8 +3,9 @@ packing spends its time (next to the stages of parjam.packing.log_stage):
 
   parjam: force kernel      the compiled pair kernel / fused FIRE step (parjam.kernels)
   parjam: FIRE allreduce    the one reduction of a fused FIRE step
-  parjam: nbr rebuild       a Verlet-list rebuild (gather of positions, search, halo set-up)
-  parjam: halo exchange     the scatter of the halo positions before a force evaluation
+  parjam: nbr rebuild       a Verlet-list rebuild (the engine's: migration, ghost plan, search)
+  parjam: halo exchange     the ghost refresh before a force evaluation (one per FIRE step)
+  parjam: migration         the engine's hand-over of particles to the slabs that own them
   parjam: Newton assembly   the Hessian's assembly for a Newton step
   parjam: Newton factor     the factorisation (or preconditioner set-up) of a Newton step
 
@@ -20,7 +21,8 @@ REBUILD = "parjam: nbr rebuild"
 HALO = "parjam: halo exchange"
 ASSEMBLY = "parjam: Newton assembly"
 FACTOR = "parjam: Newton factor"
-NAMES = (FORCE, ALLREDUCE, REBUILD, HALO, ASSEMBLY, FACTOR)
+MIGRATE = "parjam: migration"
+NAMES = (FORCE, ALLREDUCE, REBUILD, HALO, ASSEMBLY, FACTOR, MIGRATE)
 
 _events = {}
 

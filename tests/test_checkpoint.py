@@ -16,6 +16,7 @@ from conftest import subprocess_env
 from parjam import checkpoint, cli, manifest
 from parjam.io import observable
 from parjam.errors import ParjamError
+from parjam.engine import SlabEngine
 from parjam.forces import ForceField
 from parjam.minimize import FireParams, MinResult, fire
 from parjam.packing import random_packing
@@ -45,14 +46,14 @@ def evaluations(monkeypatch):
     """Counts every force evaluation of this process (plain, and those of the fused FIRE
     step)."""
     count = {"n": 0}
-    for name in ("evaluate", "fire_start", "fire_step"):
-        real = getattr(ForceField, name)
+    for cls, name in ((ForceField, "evaluate"), (SlabEngine, "start"), (SlabEngine, "step")):
+        real = getattr(cls, name)
 
         def counting(self, *args, real=real):
             count["n"] += 1
             return real(self, *args)
 
-        monkeypatch.setattr(ForceField, name, counting)
+        monkeypatch.setattr(cls, name, counting)
     return count
 
 

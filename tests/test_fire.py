@@ -68,30 +68,28 @@ def test_fused_step_is_one_semi_implicit_euler_step_with_mixing(world):
         dt, mix_v, mix_f = 0.07, 0.9, 0.3
         ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
         ff.set_positions(pack.pos)
-        f, v = ff.vec(), ff.vec()
-        v.array[:] = v0[ff.lo:ff.hi].ravel()
-        s0 = ff.fire_start(f, v)
+        eng = ff.start_engine(v0[ff.lo:ff.hi])
+        s0 = eng.start()
         assert s0.power == pytest.approx(np.vdot(f0, v0), rel=1e-10)
         assert s0.f2 == pytest.approx(np.vdot(f0, f0), rel=1e-12)
         assert s0.fmax == pytest.approx(np.sqrt((f0**2).sum(1)).max(), rel=1e-14)
         assert s0.vmax == pytest.approx(np.sqrt((v0**2).sum(1)).max(), rel=1e-14)
-        s = ff.fire_step(f, v, dt, reset, mix_v, mix_f, s0)
+        s = eng.step(dt, reset, mix_v, mix_f, s0)
         x, vv = pack.pos.copy(), v0.copy()
         if reset:
             x -= 0.5 * dt * vv
             vv[:] = 0.0
         vv = mix_f * f0 + mix_v * (vv + dt * f0)
         x += dt * vv
-        np.testing.assert_allclose(ff.gather(v), vv, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(ff.gather_engine(eng.v), vv, rtol=0, atol=1e-15)
         np.testing.assert_allclose(ff.gather(), x, rtol=0, atol=1e-13)
         ref.set_positions(x)
         e1 = ref.evaluate(fref)
-        np.testing.assert_allclose(ff.gather(f), ref.local(fref), rtol=0,
+        np.testing.assert_allclose(ff.gather_engine(eng.f), ref.local(fref), rtol=0,
                                    atol=1e-13 * np.abs(f0).max())
         assert s.energy == pytest.approx(e1, rel=1e-12)
         assert s.disp == pytest.approx(np.sqrt(((x - pack.pos) ** 2).sum(1)).max(), rel=1e-9)
-        for vec in (f, v):
-            vec.destroy()
+        ff.stop_engine()
         ff.destroy()
     fref.destroy()
     ref.destroy()
@@ -178,53 +176,57 @@ def test_library_is_built_from_this_source(tmp_path):
     assert kernels.compile_library(str(tmp_path / "x.so"), cc="/nonexistent/cc") is not None
 
 
-def test_fused_step_after_the_list_was_dropped(world):
-    """renew_neighbours() between fused steps (as Newton does before its first step): the next
-    step rebuilds the list and its forces are those of a fresh evaluation, bitwise."""
+def test_fused_step_after_a_forced_rebuild(world):
+    """A rebuild between fused steps (new slab bounds, migration, ghosts, pairs): the next
+    step's forces are those of a fresh evaluation, bitwise."""
     pack = random_packing(3, 200, 0.7, 2.0, "bi", 1.4, np.random.default_rng(12))
     ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
     ff.set_positions(pack.pos)
-    f, v, g = ff.vec(), ff.vec(), ff.vec()
-    v.set(0.0)
-    s = ff.fire_start(f, v)
-    s = ff.fire_step(f, v, 0.05, False, 0.9, 0.0, s)
-    ff.renew_neighbours()
-    before = ff.n_rebuilds
-    s = ff.fire_step(f, v, 0.05, False, 0.9, 0.0, s)
-    assert ff.n_rebuilds == before + 1
+    g = ff.vec()
+    eng = ff.start_engine()
+    s = eng.start()
+    s = eng.step(0.05, False, 0.9, 0.0, s)
+    before = eng.n_rebuilds
+    eng.rebuild(rebalance=True)
+    s = eng.step(0.05, False, 0.9, 0.0, s)
+    assert eng.n_rebuilds == before + 1
+    ff.gather()  # the engine's positions into ff.x
     e = ff.evaluate(g)
-    assert np.array_equal(ff.gather(f), ff.gather(g)) and s.energy == pytest.approx(e, rel=1e-14)
-    for vec in (f, v, g):
-        vec.destroy()
+    assert np.array_equal(ff.gather_engine(eng.f), ff.gather(g))
+    assert s.energy == pytest.approx(e, rel=1e-14)
+    ff.stop_engine()
+    g.destroy()
     ff.destroy()
 
 
 @pytest.mark.parametrize("move, rebuilt", [(0.1, False), (0.7, True)])
 def test_one_particle_moving_past_half_the_skin_rebuilds_everywhere(world, move, rebuilt):
-    """Only particle 0 (rank 0's) moves, by 0.1 or 0.7 skins in one fused step: the list is
-    rebuilt on every rank exactly when the move passes half the skin (one rank: the kernel's
-    own check; several: the bound from the last reduction, which no other rank's particles
-    raise), and the forces equal a fresh evaluation bitwise either way."""
+    """Only particle 0 moves, by 0.1 or 0.7 skins in one fused step: the list is rebuilt on
+    every rank exactly when the move passes half the skin (one rank: the kernel's own check;
+    several: the bound from the last reduction, which no other rank's particles raise), and
+    the forces equal a fresh evaluation bitwise either way."""
     pack = random_packing(3, 300, 0.6, 2.0, "mono", 1.4, np.random.default_rng(4))
     ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
     ff.set_positions(pack.pos)
-    f, v, g = ff.vec(), ff.vec(), ff.vec()
-    v.set(0.0)
+    g = ff.vec()
     dt = 0.01
+    v = np.zeros((ff.hi - ff.lo, 3))
     if ff.lo == 0:
-        v.array[:3] = np.array([1.0, 0.0, 0.0]) * move * ff.skin / dt
-    s = ff.fire_start(f, v)
-    before = ff.n_rebuilds
+        v[0] = np.array([1.0, 0.0, 0.0]) * move * ff.skin / dt
+    eng = ff.start_engine(v)
+    s = eng.start()
+    before = eng.n_rebuilds
     x0 = np.array(ff.gather())
     # no force term (f zeroed, mix_f = 0): v' = v, x' = x + dt v
-    ff.local(f)[:] = 0.0
-    s = ff.fire_step(f, v, dt, False, 1.0, 0.0, s)
+    eng.f[:] = 0.0
+    s = eng.step(dt, False, 1.0, 0.0, s)
     x1 = np.array(ff.gather())
     assert np.abs(x1[0] - x0[0] - [move * ff.skin, 0, 0]).max() < 1e-12
     assert np.array_equal(x1[1:], x0[1:])
-    assert (ff.n_rebuilds == before + 1) == rebuilt
+    assert (eng.n_rebuilds == before + 1) == rebuilt
     e = ff.evaluate(g)
-    assert np.array_equal(ff.gather(f), ff.gather(g)) and s.energy == pytest.approx(e, rel=1e-14)
-    for vec in (f, v, g):
-        vec.destroy()
+    assert np.array_equal(ff.gather_engine(eng.f), ff.gather(g))
+    assert s.energy == pytest.approx(e, rel=1e-14)
+    ff.stop_engine()
+    g.destroy()
     ff.destroy()
