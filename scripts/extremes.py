@@ -140,10 +140,10 @@ def report(paths, img):
             print(f"| {d} | {n} | {a:g} | {len(group)} | " + " | ".join(cells) + " |")
         print("\nCells: mean of p/dphi^(alpha-1) relative to its value at 1e-6, in %, and in "
               "brackets the largest deviation of a member.\n")
-        print("| d | N | members | bisection offset (mean) | old label error at 1e-8 | "
+        print("| d | N | alpha | members | bisection offset (mean) | old label error at 1e-8 | "
               "resolution of phi_c (max) | unstable states (found -> after) | compression "
               "cycles | virial dphi off its label (flagged) | s / member |")
-        print("|---|---|---|---|---|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
         for d, n, a in keys:
             group = [r for r in pd if (r["d"], r["n"], r["alpha"]) == (d, n, a)]
             off = np.mean([r["offset"] for r in group])
@@ -155,7 +155,8 @@ def report(paths, img):
             cyc = sum(s.get("cycles", 0) for r in group for s in r["states"])
             off_label = [f"seed {r['seed']} {s['dphi_label']:.0e}: {s['dphi_virial']:.2e}"
                          for r in group for s in r["states"][1:] if virial_off(s)]
-            print(f"| {d} | {n} | {len(group)} | {off:.2e} | x{1 + off / 1e-8:.1f} | {res:.1e} "
+            print(f"| {d} | {n} | {a:g} | {len(group)} | {off:.2e} | x{1 + off / 1e-8:.1f} "
+                  f"| {res:.1e} "
                   f"| {found} -> {after} | {cyc} | {'; '.join(off_label) or 'none'} "
                   f"| {sec:.0f} |")
         if img:
@@ -253,14 +254,21 @@ def plot(recs, img):
 
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     keys = sorted({(r["d"], r["n"], r["alpha"]) for r in recs})
+    flagged = False
     for k, key in enumerate(keys):
         group = [r for r in recs if (r["d"], r["n"], r["alpha"]) == key]
         for j, r in enumerate(group):
             st = [s for s in r["states"][1:]]
             x = np.array([s["dphi_label"] for s in st])
             y = np.array([s["p"] / s["dphi_label"] ** (key[2] - 1) for s in st])
+            name = f"d={key[0]} N={key[1]}" + (f" alpha={key[2]:g}" if key[2] != 2 else "")
             ax.loglog(x, y, "o-" if key[0] == 3 else "s--", color=f"C{k}", ms=3, lw=0.8,
-                      label=f"d={key[0]} N={key[1]}" if j == 0 else None)
+                      label=name if j == 0 else None)
+            off = np.array([virial_off(s) for s in st], dtype=bool)
+            ax.loglog(x[off], y[off], "kx", ms=6,
+                      label="virial dphi off its label (flagged)" if off.any() and not flagged
+                      else None)
+            flagged = flagged or off.any()
     ax.set(xlabel=r"$\Delta\phi$", ylabel=r"$p / \Delta\phi^{\alpha-1}$",
            title="pressure over distance to the refined $\\phi_c$")
     ax.legend(fontsize=7)
