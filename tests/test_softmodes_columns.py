@@ -1,0 +1,151 @@
+"""The column-block null-space method (parjam.softmodes.nullspace, ``parjam softmodes
+--columns``): blocks of any width span the same null space as the single block (principal
+cosines 1), satisfy Eq. 3 and are orthonormal; counts, extensions, f(x) and trial energies agree
+to round-off, on 1 rank and on 2; f(x) does not depend on the basis of the null space; a bad
+--columns is one line, exit 2, no file."""
+
+import os
+import tempfile
+
+import numpy as np
+import pytest
+
+from parjam import cli, env, io, softmodes as sm
+
+PETSc = env.petsc()
+DATA = os.path.join(os.path.dirname(__file__), "data")
+ISO = ["ref_d3_mono_N128_dphi1e-06.h5", "ref_d2_bi_N128_dphi1e-06.h5"]
+LARGER = "soft_d3_N512_m0.h5"
+
+
+@pytest.fixture(scope="module")
+def comm():
+    return PETSc.COMM_WORLD
+
+
+def cut_system(name, subdivide=None):
+    pack = io.read_packing(os.path.join(DATA, name))
+    planes = (sm.subdivision_planes(subdivide, pack.d) if subdivide
+              else [sm.Plane(0, 0.5)])
+    return sm.prepare(pack, planes, allow_hyperstatic=True)
+
+
+def bases(comm, cs, widths):
+    """The null basis of the cut system for each column width (None: one block)."""
+    M = sm.relaxed_matrix(comm, cs, cs.kept)
+    scale = sm.stiffness_scale(cs.kept, cs.alpha, cs.eps)
+    n_soft = sm.null_count(comm, M, scale) - cs.d
+    out = {w: sm.null_basis(comm, M, cs.d, n_soft, scale, "block", columns=w) for w in widths}
+    S = sm.rigidity_matrix(comm, cs, cs.kept)
+    eq3 = {w: sm.eq3_residual(comm, S, nb.V) for w, nb in out.items()}
+    S.destroy()
+    M.destroy()
+    return out, eq3, n_soft, scale
+
+
+@pytest.mark.parametrize("name,subdivide,widths", [
+    (ISO[0], None, (13,)),
+    (ISO[1], 2, (16,)),
+    (LARGER, None, (64,)),
+])
+def test_blocks_span_the_single_block_null_space(comm, name, subdivide, widths):
+    cs = cut_system(name, subdivide)
+    got, eq3, n_soft, scale = bases(comm, cs, (None,) + widths)
+    ref = got[None]
+    assert n_soft > max(w for w in widths if w < n_soft)  # several blocks really happen
+    M = sm.relaxed_matrix(comm, cs, cs.kept)
+    T = sm.translation_columns(M, cs.d)
+    M.destroy()
+    for w in (None,) + widths:
+        nb = got[w]
+        assert nb.V.shape[1] == n_soft
+        assert eq3[w] < 1e-12
+        assert sm.orthonormality_error(comm, nb.V) < 1e-12
+        assert np.abs(nb.rayleigh).max() < 1e-12 * scale
+        assert np.abs(sm.gram(comm, T, nb.V)).max() < 1e-10  # translations deflated
+        cos = np.linalg.svd(sm.gram(comm, ref.V, nb.V), compute_uv=False)
+        assert np.allclose(cos, 1.0, atol=1e-9), (w, cos.min())
+        assert nb.gap == pytest.approx(ref.gap, rel=1e-6) and nb.gap > 1e-6 * scale
+
+
+@pytest.mark.parametrize("name", ISO)
+def test_fx_is_basis_independent(comm, name):
+    """Two bases of the same null space (two column widths, and one rotated by a random
+    orthogonal matrix) give the same f(x), with and without the localised modes."""
+    cs = cut_system(name, 2)
+    got, _, n_soft, _ = bases(comm, cs, (None, 8))
+    lo, hi = got[None].lo, got[None].hi
+    u = sm.coordinate_from_plane(cs.pos[lo:hi], cs.L, cs.planes[0])
+    rot, _ = np.linalg.qr(np.random.default_rng(2).normal(size=(n_soft, n_soft)))
+    f = [sm.overlap_function(comm, V, u, 10)[1]
+         for V in (got[None].V, got[8].V, got[8].V @ rot)]
+    f_nt = [sm.overlap_without_localised(comm, cs, V, lo, hi, u, 10)[1]
+            for V in (got[None].V, got[8].V, got[8].V @ rot)]
+    for a in f[1:]:
+        assert np.allclose(a, f[0], atol=1e-12)
+    for a in f_nt[1:]:
+        assert np.allclose(a, f_nt[0], atol=1e-12)
+    # the row-chunked f without localised modes is that of the explicit basis
+    W = sm.without_localised(comm, cs, got[8].V, lo, hi)
+    assert np.allclose(sm.overlap_function(comm, W, u, 10)[1], f_nt[0], atol=1e-12)
+    assert np.sum(f[0]) / 10 == pytest.approx(1.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("name", ISO)
+def test_analysis_in_blocks_equals_the_single_block(comm, name):
+    """The whole analysis with 8-column blocks on all ranks against one block on COMM_SELF:
+    counts, extension spectrum, f(x), trial energies and the variational count."""
+    cs = cut_system(name, 2)
+    a = sm.analyze(PETSc.COMM_SELF, cs, e0=0.1, columns=None)
+    b = sm.analyze(comm, cs, e0=0.1, columns=8)
+    assert a.count == b.count == cs.expected and a.n_soft == b.n_soft
+    assert a.q_prime == b.q_prime and a.n_below == b.n_below
+    assert np.allclose(a.e, b.e, atol=1e-11)
+    assert np.allclose(a.overlap, b.overlap, atol=1e-11)
+    assert np.allclose(a.trial_energy, b.trial_energy, rtol=1e-8, equal_nan=True)
+    assert np.array_equal(a.fractions, b.fractions)
+    assert b.eq3 < 1e-12 and b.ortho < 1e-12
+    assert b.solver["columns"] == 8 and a.solver["columns"] == 0
+
+
+@pytest.fixture(scope="module")
+def tmpdir_all():
+    mpi = PETSc.COMM_WORLD.tompi4py()
+    path = mpi.bcast(tempfile.mkdtemp(prefix="parjam-cols-") if mpi.Get_rank() == 0 else None)
+    yield path
+    mpi.Barrier()
+    if mpi.Get_rank() == 0:
+        import shutil
+
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def test_cli_columns_is_recorded_and_changes_no_result(comm, tmpdir_all):
+    import h5py
+
+    src = os.path.join(DATA, ISO[0])
+    outs = [os.path.join(tmpdir_all, f"cols{w}.h5") for w in (8, 100000)]
+    for w, out in zip((8, 100000), outs):
+        assert cli.main(["softmodes", src, "--subdivide", "2", "--columns", str(w), "-q",
+                         "--out", out]) == 0
+    comm.tompi4py().Barrier()
+    with h5py.File(outs[0], "r") as f, h5py.File(outs[1], "r") as g:
+        assert f["softmodes"].attrs["columns"] == 8 and g["softmodes"].attrs["columns"] == 100000
+        assert int(f["softmodes/count"][()]) == int(g["softmodes/count"][()])
+        assert np.allclose(f["softmodes/overlap"][()], g["softmodes/overlap"][()], atol=1e-11)
+        assert np.allclose(f["softmodes/extension"][()], g["softmodes/extension"][()],
+                           atol=1e-11)
+
+
+@pytest.mark.parametrize("bad", ["0", "-3", "100001"])
+def test_bad_columns_is_one_line_exit_2_and_no_file(comm, tmpdir_all, capsys, bad):
+    out = os.path.join(tmpdir_all, f"bad{bad}.h5")
+    capsys.readouterr()
+    code = cli.main(["softmodes", os.path.join(DATA, ISO[0]), "--cut", "x=0.5",
+                     "--columns", bad, "-q", "--out", out])
+    err = capsys.readouterr().err
+    assert code == 2 and not os.path.exists(out)
+    if comm.getRank() == 0:
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        assert len(lines) == 1 and lines[0].startswith("parjam: error:")
+        assert "--columns must lie in [1, 100000]" in lines[0]
