@@ -99,9 +99,11 @@ def read_block(comm, path):
                     np.asarray(diam[start:stop], dtype=float), L, alpha, eps, meta)
 
 
-def network(comm, path):
-    """The distributed active network of a packing file, read by row ranges (collective)."""
-    rows = read_rows(comm, path)
+def network(comm, source):
+    """The distributed active network of a packing file (a path, or its ``read_rows``), read by
+    row ranges (collective)."""
+    rows = source if isinstance(source, Rows) else read_rows(comm, source)
+    path = rows.path
     net = active.build(comm, rows.pos, rows.diam, rows.ids, rows.L, rows.alpha, rows.eps)
     dmin = net.comm.allreduce(float(rows.diam.min()) if len(rows.diam) else np.inf,
                               op=active.min_op())
