@@ -30,6 +30,8 @@ def tiled(pack, k):
     shifts = np.array(list(itertools.product(range(k), repeat=pack.d)), dtype=float) * pack.L
     pos = (pack.pos[None, :, :] + shifts[:, None, :]).reshape(-1, pack.d)
     meta = {key: val for key, val in pack.meta.items() if key != "source"}
+    if "species" in meta:
+        meta["species"] = np.tile(np.asarray(meta["species"]), len(shifts))
     return Packing(pos, np.tile(pack.diam, len(shifts)), k * pack.L, pack.alpha, pack.eps, meta)
 
 
@@ -49,7 +51,8 @@ def main(argv=None):
         return 2
     big = tiled(small, args.k)
     net = analyze(big)
-    params = dict(big.meta, tiled_from=os.path.abspath(args.packing), tiles=args.k)
+    params = {key: val for key, val in big.meta.items() if key != "species"}
+    params.update(tiled_from=os.path.abspath(args.packing), tiles=args.k)
     io.write_packing(args.out, big, net, params)
     print(f"{args.out}: N = {big.n} ({args.k}^{big.d} x {small.n}), L = {big.L:.6g}, "
           f"z = {net.z:.4f}, p = {net.pressure:.4e}")
