@@ -164,10 +164,22 @@ def renumber(comm, halo, alive):
     return np.concatenate([number, halo.pull(number)]), lo, hi
 
 
-def build(comm, x, diam, ids, L, alpha=2.0, eps=1.0):
+def check_distinct(comm, edges, ids, gid, diam, tol):
+    """ValueError on every rank if two centres are closer than ``tol`` x the smallest diameter
+    (they would divide every force by r = 0), naming the first pair (collective)."""
+    dmin = comm.allreduce(float(diam.min()) if len(diam) else np.inf, op=min_op())
+    close = np.flatnonzero(edges.r < tol * dmin)
+    pair = sorted((int(ids[edges.i[close[0]]]), int(gid[edges.j[close[0]]]))) if len(close) \
+        else None
+    pairs = [p for p in comm.allgather(pair) if p]
+    if pairs:
+        raise ValueError(f"particles {pairs[0][0]} and {pairs[0][1]} coincide")
+
+
+def build(comm, x, diam, ids, L, alpha=2.0, eps=1.0, coincide=1e-9):
     """The distributed active network from any distribution of the particles over the ranks
     (rows ``x``, ``diam`` with global ``ids``; collective).  ``L`` is the box edge (scalar) or
-    edges."""
+    edges; centres closer than ``coincide`` x the smallest diameter are refused (ValueError)."""
     comm = as_mpi(comm)
     x = np.asarray(x, dtype=np.float64)
     d = x.shape[1]
@@ -180,6 +192,7 @@ def build(comm, x, diam, ids, L, alpha=2.0, eps=1.0):
         raise ValueError(f"box edge {dom.L.min():.3g} is not larger than twice the neighbour "
                          f"cutoff {dmax:.3g}: too few particles for this box")
     allc, halo, gid = half_edges(dom, x, diam, ids, dmax * (1.0 + 1e-9))
+    check_distinct(comm, allc, ids, gid, diam, coincide)
     rattler = remove_rattlers(comm, halo, len(x), d, allc)
     number, lo, hi = renumber(comm, halo, ~rattler)
     keep = (number[allc.i] >= 0) & (number[allc.j] >= 0)

@@ -41,7 +41,7 @@ def mode_attrs(spec, system, packing_path, ranks):
         "n_negative": spec.n_negative, "unstable": bool(spec.unstable),
         "n_zero_modes": spec.n_zero, "n_translations": system.d,
         "translations_deflated": True, "rattlers_removed": True, "n_active": system.n,
-        "n_rattlers": system.n_rattlers, "dimension": system.d, "n_contacts": len(system.r),
+        "n_rattlers": system.n_rattlers, "dimension": system.d, "n_contacts": system.n_contacts,
         "n_modes_total": system.n_modes, "alpha": system.alpha, "pressure": system.pressure,
         "max_force": system.max_force, "ranks": int(ranks), "seconds": spec.seconds,
         "packing_file": os.path.abspath(packing_path) if packing_path else "",

@@ -27,6 +27,7 @@ from parjam.domain import as_mpi
 from parjam.errors import ParjamError
 
 POSITIONS, DIAMETERS = "particles/all/position/value", "particles/all/diameter"
+SPECIES = "particles/all/species"
 
 
 @dataclass
@@ -44,6 +45,7 @@ class Rows:
     alpha: float
     eps: float
     meta: dict
+    species_ok: bool = True  # the species of these rows are integers (or there are none)
 
     @property
     def ids(self):
@@ -70,8 +72,9 @@ def read_rows(comm, path):
         problem = f"{path}: unreadable HDF5 file ({exc})"
     collective(comm, problem)
     rows = head
-    collective(comm, io.value_problem(path, rows.pos, rows.diam, np.full(rows.d, rows.L),
-                                      rows.L))
+    problem = io.value_problem(path, rows.pos, rows.diam, np.full(rows.d, rows.L), rows.L)
+    collective(comm, problem or (None if rows.species_ok else
+                                 f"{path}: species must be {rows.n} integers"))
     rows.pos = np.mod(rows.pos, rows.L)
     return rows
 
@@ -95,22 +98,23 @@ def read_block(comm, path):
         n, d = frame
         start, stop = active.row_block(n, comm)
         x = pos[-1, start:stop] if pos.ndim == 3 else pos[start:stop]
-        return Rows(path, n, d, start, stop, np.asarray(x, dtype=float),
+        rows = Rows(path, n, d, start, stop, np.asarray(x, dtype=float),
                     np.asarray(diam[start:stop], dtype=float), L, alpha, eps, meta)
+        if isinstance(f.get(SPECIES), h5py.Dataset):  # read_packing's check, on these rows
+            species = io.checked_dataset(f, SPECIES, path, (1,))
+            if species.shape != (n,):
+                raise ParjamError(f"{path}: species must be {n} integers")
+            own = np.asarray(species[start:stop], dtype=float)
+            rows.species_ok = bool(np.all(own == np.round(own)))
+        return rows
 
 
-def network(comm, path):
-    """The distributed active network of a packing file, read by row ranges (collective)."""
-    rows = read_rows(comm, path)
-    net = active.build(comm, rows.pos, rows.diam, rows.ids, rows.L, rows.alpha, rows.eps)
-    dmin = net.comm.allreduce(float(rows.diam.min()) if len(rows.diam) else np.inf,
-                              op=active.min_op())
-    c = net.all_contacts
-    close = c.r < io.DUPLICATE_TOL * dmin
-    problem = None
-    if close.any():
-        k = int(np.argmax(close))
-        i, j = sorted((int(net.owned_ids[c.i[k]]), int(net.all_ids_j[k])))
-        problem = f"{path}: particles {i} and {j} coincide"
-    collective(net.comm, problem)
-    return net
+def network(comm, source):
+    """The distributed active network of a packing file (a path, or its ``read_rows``), read by
+    row ranges (collective)."""
+    rows = source if isinstance(source, Rows) else read_rows(comm, source)
+    try:
+        return active.build(comm, rows.pos, rows.diam, rows.ids, rows.L, rows.alpha, rows.eps,
+                            coincide=io.DUPLICATE_TOL)
+    except ValueError as exc:  # raised on every rank alike (active.check_distinct)
+        raise ParjamError(f"{rows.path}: {exc}") from None

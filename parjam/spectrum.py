@@ -316,9 +316,9 @@ def compute(comm, system, kind="full", *, k=None, window=None, method="auto", to
         finally:
             S.destroy()
         if vectors and system.distributed:
-            order = np.argsort(system.gather_active(comm)) if comm.getRank() == 0 else None
+            ids = system.gather_active(comm)  # collective; the ids on rank 0
             if spec.vectors is not None:  # rows in the order of the particle ids (the file's)
-                spec.vectors = spec.vectors[:, order]
+                spec.vectors = spec.vectors[:, np.argsort(ids)]
     spec.seconds = time.perf_counter() - t0
     return spec
 

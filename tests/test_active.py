@@ -132,7 +132,7 @@ def test_distributed_eigenvalues_equal_dense_lapack(name):
     ref = np.load(os.path.join(DATA, name + ".spectrum.npz"))["full"]
     s = spectrum.distributed_system(active.from_packing(COMM, pack))
     d = pack.d
-    spec = spectrum.compute(WORLD, s, "full", k=12, method="sinvert")
+    spec = spectrum.compute(WORLD, s, "full", k=12, method="sinvert", vectors=True)
     assert np.all(np.abs(spec.eigenvalue / ref[d:d + 12] - 1) <= 1e-8)
     lo, hi = d + 5, d + 30
     w = (np.sqrt(0.5 * (ref[lo - 1] + ref[lo])), np.sqrt(0.5 * (ref[hi] + ref[hi + 1])))
@@ -144,8 +144,9 @@ def test_distributed_eigenvalues_equal_dense_lapack(name):
     serial = spectrum.compute(WORLD, spectrum.active_system(pack), "full", k=3,
                               method="dense", vectors=True)
     if COMM.rank == 0:  # vectors in the particle order of the file, as the serial ones
-        for u, v in zip(dense.vectors[:3], serial.vectors):
+        for u, v, w in zip(dense.vectors[:3], serial.vectors, spec.vectors):
             assert abs(abs(np.vdot(u.ravel(), v.ravel())) - 1.0) < 1e-8
+            assert abs(abs(np.vdot(w.ravel(), v.ravel())) - 1.0) < 1e-8
 
 
 def test_no_options_left_in_the_database():

@@ -196,15 +196,15 @@ def write(args, dos, prov, line):
 def kpm_ensemble(comm, paths, args, plateau, progress):
     """KPM D(omega) of each packing on common bins (up to the lowest upper bound of the files),
     D0 and omega* each; mean and standard error over files (over probes for one file)."""
-    from parjam import io, kpm, observables, spectrum
+    from parjam import kpm, observables, rowio, spectrum
 
     bounds = parse_pair(args.kpm_bounds, "--kpm-bounds") if args.kpm_bounds else None
-    packs = [io.read_packing(path) for path in paths]  # all checked before any work
-    check_same_system([(p, k.d, k.n, "") for p, k in zip(paths, packs)])
+    rows = [rowio.read_rows(comm, path) for path in paths]  # all checked before any work
+    check_same_system([(p, k.d, k.n, "") for p, k in zip(paths, rows)])
     results = []
-    for path, pack in zip(paths, packs):
-        system = spectrum.active_system(pack)
-        progress(f"{path}: N' = {system.n}, {len(system.r)} contacts")
+    for path, part in zip(paths, rows):  # this rank's rows only (parjam.active)
+        system = spectrum.distributed_system(rowio.network(comm, part))
+        progress(f"{path}: N' = {system.n}, {system.n_contacts} contacts")
         results.append(kpm.compute(comm, system, args.matrix, args.moments, args.probes,
                                    args.seed, args.probe_kind, bounds, progress))
     top = min(r.omega_max for r in results)

@@ -5,7 +5,7 @@ import sys
 
 import numpy as np
 
-from parjam import env, io, modes_io, outputs, spectrum
+from parjam import env, io, modes_io, outputs, rowio, spectrum
 from parjam.commands import parse_pair
 from parjam.errors import ParjamError
 from parjam.plot import spectra as plot_spectra
@@ -94,10 +94,11 @@ def run(args):
     outputs.check(comm, files=[("--out", p) for p in output_paths(args.out, args.matrix).values()]
                   + [("--plot", args.plot)], inputs=[args.packing])
     progress = Progress(comm.tompi4py(), args.quiet, "modes: ")
-    pack = io.read_packing(args.packing)
-    system = spectrum.active_system(pack)
+    # this rank's rows only (parjam.active); rank 0 re-reads the file to write it (modes_io)
+    system = spectrum.distributed_system(rowio.network(comm, args.packing))
     progress(f"N' = {system.n} non-rattlers ({system.n_rattlers} rattlers), "
-             f"{len(system.r)} contacts, d = {system.d}")
+             f"{system.n_contacts} contacts, d = {system.d}")
+    system.gather_active(comm)  # rank 0: the non-rattlers' ids, written with the modes
     prov = io.provenance(comm.getSize(), {"command": "modes"})
     paths = output_paths(args.out, args.matrix)
     code = 0

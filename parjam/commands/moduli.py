@@ -21,15 +21,15 @@ def add_parser(sub):
 
 
 def run(args):
-    from parjam import env, io, moduli, outputs
+    from parjam import env, io, moduli, outputs, rowio
     from parjam.progress import Progress
 
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
     outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
     progress = Progress(comm, args.quiet, "moduli: ")
-    pack = io.read_packing(args.packing)
-    mod = moduli.compute(pack, comm, progress)
+    net = rowio.network(comm, args.packing)  # this rank's rows only (parjam.active)
+    mod = moduli.compute(comm=comm, progress=progress, net=net)
     if args.out:
         prov = io.provenance(comm.getSize(), {
             "command": "moduli", "input": os.path.abspath(args.packing),
