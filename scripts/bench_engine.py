@@ -158,6 +158,7 @@ def main():
         sys.path.insert(0, a.code)
         from mpi4py import MPI
 
+        a.n = a.n[0]
         out = worker_step(a) if a.kind == "step" else worker_weak(a)
         if MPI.COMM_WORLD.Get_rank() == 0:
             print(json.dumps(out), flush=True)
