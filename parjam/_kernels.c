@@ -323,7 +323,7 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
                           double x0min, double w0, int64_t nx, int64_t nc, const int64_t *row,
                           const int64_t *gid, const int64_t *kind, int64_t nlow,
                           const int64_t *low, int64_t *start, int64_t *order, int64_t *cellof,
-                          double *sp, int64_t cap, int64_t *pi, int64_t *pj)
+                          double *sp, int64_t *sg, int64_t cap, int64_t *pi, int64_t *pj)
 {
     int64_t ncells = nx;
     for (int a = 1; a < d; a++)
@@ -348,9 +348,14 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
     for (int64_t c = ncells; c > 0; c--)
         start[c] = start[c - 1];
     start[0] = 0;
-    for (int64_t q = 0; q < n; q++)
+    /* positions, and the global id (times 2, plus 1 for a non-owned point), in cell order, so
+     * that a cell's candidates are read contiguously */
+    for (int64_t q = 0; q < n; q++) {
+        const int64_t k = order[q];
         for (int a = 0; a < d; a++)
-            sp[q * d + a] = pos[order[q] * d + a];
+            sp[q * d + a] = pos[k * d + a];
+        sg[q] = 2 * gid[k] + (kind[k] != 0);
+    }
     const double cut2 = cutoff * cutoff;
     const int wide = nc >= 3;        /* periodic neighbours m-1, m, m+1; else every cell once */
     const int64_t span = wide ? 3 : nc;
@@ -359,6 +364,10 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
     for (int64_t t = 0; t < nlow; t++) {
         const int64_t i = low[t];
         const int64_t first = count;
+        /* j is kept when gid[j] > gid[i] and (i or j owned): with g = 2 gid + (not owned),
+         * g_j >= gi2 + 2 (gid[i] owned) or g_j = 2 gid[j] >= gi2 + 1 with j owned */
+        const int64_t gi2 = 2 * gid[i];
+        const int own_i = kind[i] == 0;
         int64_t m[3] = {0, 0, 0};
         int64_t ci = cellof[i];
         for (int a = d - 1; a >= 1; a--) {
@@ -374,22 +383,28 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
                 for (int64_t o2 = 0; o2 < span2; o2++) {
                     int64_t c = t0;
                     const int64_t oo[3] = {0, o1, o2};
+                    double xr[3] = {pos[i * d], 0.0, 0.0};
                     for (int a = 1; a < d; a++) {
                         int64_t tt = wide ? m[a] + oo[a] - 1 : oo[a];
-                        if (tt < 0)
+                        double shift = 0.0;
+                        if (tt < 0) {
                             tt += nc;
-                        else if (tt >= nc)
+                            shift = -L;
+                        } else if (tt >= nc) {
                             tt -= nc;
+                            shift = L;
+                        }
                         c = c * nc + tt;
+                        xr[a] = pos[i * d + a] - shift; /* x_j - x_i = x_j - (x_i - shift) */
                     }
                     for (int64_t q = start[c]; q < start[c + 1]; q++) {
-                        const int64_t j = order[q];
-                        if (gid[j] <= gid[i] || (kind[i] != 0 && kind[j] != 0))
+                        const int64_t g = sg[q];
+                        if (own_i ? g < gi2 + 2 : (g & 1) || g <= gi2)
                             continue;
                         double r2 = 0.0;
                         for (int a = 0; a < d; a++) {
-                            double x = sp[q * d + a] - pos[i * d + a];
-                            if (a > 0 && (x > 0.5 * L || x < -0.5 * L))
+                            double x = sp[q * d + a] - xr[a];
+                            if (!wide && a > 0 && (x > 0.5 * L || x < -0.5 * L))
                                 x -= L * rint(x / L);
                             r2 += x * x;
                         }
@@ -397,7 +412,7 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
                             continue;
                         if (count < cap) {
                             pi[count] = i;
-                            pj[count] = j; /* a search point until the row is sorted */
+                            pj[count] = q; /* a cell-order index until the row is sorted */
                         }
                         count++;
                     }
@@ -408,7 +423,7 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
             for (int64_t p = first + 1; p < count; p++) {
                 const int64_t key = pj[p];
                 int64_t q = p - 1;
-                while (q >= first && gid[pj[q]] > gid[key]) {
+                while (q >= first && sg[pj[q]] > sg[key]) {
                     pj[q + 1] = pj[q];
                     q--;
                 }
@@ -416,7 +431,7 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
             }
             for (int64_t p = first; p < count; p++) {
                 pi[p] = row[pi[p]];
-                pj[p] = row[pj[p]];
+                pj[p] = row[order[pj[p]]];
             }
         }
     }

@@ -55,7 +55,7 @@ class SlabEngine:
     def __init__(self, comm, L, alpha, eps, skin, x, ids, diam, v=None):
         self.comm = as_mpi(comm)
         self.rank, self.size = self.comm.Get_rank(), self.comm.Get_size()
-        x = np.asarray(x, dtype=np.float64)
+        x = np.array(x, dtype=np.float64)  # copies: the engine moves its own
         self.d = x.shape[1]
         self.L = float(L)
         self.alpha, self.eps, self.skin = alpha, eps, float(skin)
@@ -65,9 +65,11 @@ class SlabEngine:
         self.n_rebuilds = self.n_migrated = 0
         self.sums = np.zeros(kernels.N_SUMS)
         self._sums = None
-        v = np.zeros_like(x) if v is None else np.asarray(v, dtype=np.float64)
+        v = np.zeros_like(x) if v is None else np.array(v, dtype=np.float64)
         self.domain = SlabDomain.balanced(self.comm, self.L, x)
-        self._own(x, np.asarray(ids, dtype=np.int64), np.asarray(diam, dtype=np.float64), v)
+        ids = np.asarray(ids, dtype=np.int64)
+        o = np.argsort(ids, kind="stable")  # rows sorted by id (migrate sorts them too)
+        self._own(x[o], ids[o], np.asarray(diam, dtype=np.float64)[o], v[o])
         self.rebuild()
 
     # --- the decomposition ---------------------------------------------------------------------
@@ -79,14 +81,17 @@ class SlabEngine:
         and the pair list at the current positions (collective)."""
         with event(REBUILD):
             with event(MIGRATE):
-                xu = self.xu
-                _, ids, fl = self.domain.migrate(xu, self.ids, {"xu": xu, "v": self.v,
-                                                                "diam": self.diam})
-                if rebalance or self.domain.imbalance(len(ids)) > REBALANCE:
-                    self.domain = SlabDomain.balanced(self.comm, self.L, fl["xu"])
-                    _, ids, fl = self.domain.migrate(fl["xu"], ids, fl)
-            self.n_migrated += int(np.count_nonzero(
-                np.isin(ids, self.ids, assume_unique=True, invert=True)))
+                if self.size > 1:
+                    xu = self.xu
+                    leaving = np.count_nonzero(self.domain.owner(xu) != self.rank)
+                    _, ids, fl = self.domain.migrate(xu, self.ids, {"xu": xu, "v": self.v,
+                                                                    "diam": self.diam})
+                    if rebalance or self.domain.imbalance(len(ids)) > REBALANCE:
+                        self.domain = SlabDomain.balanced(self.comm, self.L, fl["xu"])
+                        _, ids, fl = self.domain.migrate(fl["xu"], ids, fl)
+                    self.n_migrated += int(leaving)
+                else:  # one slab: nothing to hand over
+                    ids, fl = self.ids, {"xu": self.xu, "v": self.v, "diam": self.diam}
             self._own(fl["xu"], ids, fl["diam"], fl["v"])
             self._plan()
             self.n_rebuilds += 1
@@ -105,9 +110,9 @@ class SlabEngine:
         row[image] = np.searchsorted(self.ids, halo.ids[image])
         kind = np.where(image, 1, 2)
         gid = np.concatenate([self.ids, halo.ids])
-        shift = np.concatenate([np.zeros(n_own), halo.shift[:, 0]])
         kinds = np.concatenate([np.zeros(n_own, dtype=np.int64), kind])
-        low = np.lexsort((shift, gid))
+        # owned rows sorted by id, ghosts by (id, shift): a stable sort by id merges them
+        low = np.argsort(gid, kind="stable")
         low = low[kinds[low] != 1]
         self.pi, self.pj = kernels.slab_pairs(np.concatenate([xw, halo.x]), self.L, self.cut,
                                               np.concatenate([np.arange(n_own), row]), gid,

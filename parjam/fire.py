@@ -1,7 +1,8 @@
 """FIRE (Bitzek et al., PRL 97, 170201 (2006)) to a force tolerance, one fused compiled step per
 iteration on the spatial decomposition (parjam.engine.SlabEngine.step: update, ghost refresh,
-forces and partial sums, then one allreduce of seven numbers), with the choice of today's parameters or FIRE 2.0 (Guenole et al.,
-Comput. Mater. Sci. 175, 109584 (2020), Algorithm 2 and Table 1).
+forces and partial sums, then one allreduce of seven numbers), with the choice of today's
+parameters or FIRE 2.0 (Guenole et al., Comput. Mater. Sci. 175, 109584 (2020), Algorithm 2 and
+Table 1).
 
 Both variants integrate with semi-implicit Euler (v += dt F, then x += dt v) and step half back
 (x -= dt v / 2, v = 0) when the power P = F.v turns non-positive.  FIRE 2.0 differs in its

@@ -136,7 +136,7 @@ def library():
     sl.restype = ctypes.c_int64
     sl.argtypes = [ctypes.c_int64, ctypes.c_int, f64, dbl, dbl, dbl, dbl, ctypes.c_int64,
                    ctypes.c_int64, i64, i64, i64, ctypes.c_int64, i64, wi64, wi64, wi64, w64,
-                   ctypes.c_int64, wi64, wi64]
+                   wi64, ctypes.c_int64, wi64, wi64]
     _lib = lib
     return _lib
 
@@ -320,12 +320,12 @@ def slab_pairs(pos, L, cutoff, row, gid, kind, low):
         return _slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low)
     start = np.empty(nx * nc ** (d - 1) + 1, dtype=np.int64)
     order, cellof = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-    sp = np.empty((n, d))
+    sp, sg = np.empty((n, d)), np.empty(n, dtype=np.int64)
     cap = 8 * n + 1024
     while True:
         pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
         got = lib.parjam_slab_pairs(n, d, pos, L, cutoff, x0min, w0, nx, nc, row, gid, kind,
-                                    len(low), low, start, order, cellof, sp, cap, pi, pj)
+                                    len(low), low, start, order, cellof, sp, sg, cap, pi, pj)
         if got >= 0:
             return pi[:got].copy(), pj[:got].copy()
         cap = -got
