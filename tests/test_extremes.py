@@ -1,8 +1,10 @@
 """Honest at the extremes (issue 20): phi_c refined from the jammed side so that p / dphi is
 constant down to dphi = 1e-9; every returned state a stable minimum (a constructed saddle is
-detected, against a dense eigenvalue count, and relaxed to a stable minimum); a state that
-cannot be stabilised is flagged, not dropped; tolerances that cannot define a jammed state are
-refused.
+detected, against a dense eigenvalue count, and relaxed to a stable minimum, by the escapes
+or, with those switched off, by the compression cycle, which a checkpointed resume repeats); a
+state that cannot be stabilised is flagged, not dropped; a state whose own virial dphi
+disagrees with its label is flagged; a ladder step that unjams keeps the states before it
+(written, exit 3); tolerances that cannot define a jammed state are refused.
 
 The ladders are built on COMM_SELF (every rank of the MPI pass builds the same ones: a member
 shared by 2 ranks costs 30x more FIRE time on this loaded machine); the stability checks and the
