@@ -335,11 +335,9 @@ def print_table(rows):
               f"{r['N_active']:>6} {r['excess']:>6} {r['z']:>8.4f} {r['dz']:>10.3e} "
               f"{r['pressure']:>11.4e} {r['max_force']:>9.2e} {r['max_force_rel']:>9.2e}")
     print(stability_line(rows))
-    rejammed = [(r["member"], r["state"]) for r in rows if not r.get("dphi_virial_ok", 1)]
-    if rejammed:
-        print(f"labels: {len(rejammed)} state(s) re-jammed at another phi_c on the way (their "
-              f"own virial dphi is off their label; dphi_virial_ok = 0): "
-              + ", ".join(f"{m} {s}" for m, s in rejammed))
+    line = label_line(rows)
+    if line:
+        print(line)
 
 
 def stability_line(rows):
@@ -350,3 +348,14 @@ def stability_line(rows):
         return f"stability: all {len(rows)} states are stable minima (Nc >= Nc_iso)"
     return (f"stability: {len(bad)} of {len(rows)} states in {len(members)} member(s) are NOT "
             f"stable minima (flagged stable = 0): " + ", ".join(f"{m} {s}" for m, s in bad))
+
+
+def label_line(rows):
+    """The ensemble's count of states whose own virial dphi is off their label (``virial_flags``),
+    or None if there is none."""
+    bad = [(r["member"], r["state"]) for r in rows if not r.get("dphi_virial_ok", 1)]
+    if not bad:
+        return None
+    return (f"labels: {len(bad)} state(s) re-jammed at another phi_c on the way (their own "
+            f"virial dphi is off their label; dphi_virial_ok = 0): "
+            + ", ".join(f"{m} {s}" for m, s in bad))

@@ -262,6 +262,10 @@ def test_virial_dphi_disagreeing_with_the_label_is_flagged(ladder, capsys):
     err = capsys.readouterr().err
     assert obs["dphi_virial_ok"] == 0 and err.count("\n") == 1
     assert "re-jammed at another phi_c" in err and "1.00e-06" in err
+    rows = [{"member": 0, "state": st.label, "dphi_virial_ok": st.info["dphi_virial_ok"]}
+            for st in states + [off]]
+    assert ensemble.label_line(rows[:-1]) is None
+    assert ensemble.label_line(rows).startswith("labels: 1 state(s) re-jammed")
 
 
 def test_unjammed_ladder_step_keeps_the_jammed_states(shared_tmp, monkeypatch, capsys):
