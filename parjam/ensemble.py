@@ -193,7 +193,7 @@ def stability_observables(st, label):
             _warn(f"{label}: its own contact network puts it at dphi = "
                   f"{st.info['dphi_virial']:.2e} from jamming (virial relation), not "
                   f"phi - phi_c = {label_dphi:.2e} (tolerance "
-                  f"{virial_tolerance(label_dphi):.0%}): it re-jammed at another phi_c on the "
+                  f"{virial_tolerance(label_dphi):.1%}): it re-jammed at another phi_c on the "
                   f"way (dphi_virial_ok = 0 in /observables)")
     if "stable" in out:
         out["stable"] = np.int8(out["stable"])
@@ -278,7 +278,8 @@ def pack_member(args, member, comm, progress, run_params=None):
         if comm.getRank() == 0:  # one row per state, however many ranks share the member
             rows.append({"member": member, "state": st.label, "file": path, **net.summary(),
                          "phi_c": st.info.get("phi_c", np.nan),
-                         "stable": int(st.info.get("stable", 1))})
+                         "stable": int(st.info.get("stable", 1)),
+                         "dphi_virial_ok": int(st.info.get("dphi_virial_ok", 1))})
     if stopped is not None:
         # the jammed states are written, but the member is not finished: no manifest record
         # (a rerun recomputes it, from its checkpoint if any) and an UnjammedError (exit 3)
@@ -308,8 +309,8 @@ def rows_from_files(out, member, files):
         path = os.path.join(out, name)
         with h5py.File(path, "r") as f:
             row = {key: io.observable(f, key) for key in SUMMARY_KEYS}
-            row["stable"] = int(io.observable(f, "stable")) if "stable" in f["observables"] \
-                else 1
+            for key in ("stable", "dphi_virial_ok"):
+                row[key] = int(io.observable(f, key)) if key in f["observables"] else 1
             par = f["parameters"].attrs
             state = par["state"]
             row.update(member=member, file=path, phi_c=float(par.get("phi_c", np.nan)),
@@ -334,6 +335,9 @@ def print_table(rows):
               f"{r['N_active']:>6} {r['excess']:>6} {r['z']:>8.4f} {r['dz']:>10.3e} "
               f"{r['pressure']:>11.4e} {r['max_force']:>9.2e} {r['max_force_rel']:>9.2e}")
     print(stability_line(rows))
+    line = label_line(rows)
+    if line:
+        print(line)
 
 
 def stability_line(rows):
@@ -344,3 +348,14 @@ def stability_line(rows):
         return f"stability: all {len(rows)} states are stable minima (Nc >= Nc_iso)"
     return (f"stability: {len(bad)} of {len(rows)} states in {len(members)} member(s) are NOT "
             f"stable minima (flagged stable = 0): " + ", ".join(f"{m} {s}" for m, s in bad))
+
+
+def label_line(rows):
+    """The ensemble's count of states whose own virial dphi is off their label (``virial_flags``),
+    or None if there is none."""
+    bad = [(r["member"], r["state"]) for r in rows if not r.get("dphi_virial_ok", 1)]
+    if not bad:
+        return None
+    return (f"labels: {len(bad)} state(s) re-jammed at another phi_c on the way (their own "
+            f"virial dphi is off their label; dphi_virial_ok = 0): "
+            + ", ".join(f"{m} {s}" for m, s in bad))

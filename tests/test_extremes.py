@@ -1,8 +1,10 @@
 """Honest at the extremes (issue 20): phi_c refined from the jammed side so that p / dphi is
 constant down to dphi = 1e-9; every returned state a stable minimum (a constructed saddle is
-detected, against a dense eigenvalue count, and relaxed to a stable minimum); a state that
-cannot be stabilised is flagged, not dropped; tolerances that cannot define a jammed state are
-refused.
+detected, against a dense eigenvalue count, and relaxed to a stable minimum, by the escapes
+or, with those switched off, by the compression cycle, which a checkpointed resume repeats); a
+state that cannot be stabilised is flagged, not dropped; a state whose own virial dphi
+disagrees with its label is flagged; a ladder step that unjams keeps the states before it
+(written, exit 3); tolerances that cannot define a jammed state are refused.
 
 The ladders are built on COMM_SELF (every rank of the MPI pass builds the same ones: a member
 shared by 2 ranks costs 30x more FIRE time on this loaded machine); the stability checks and the
@@ -200,23 +202,34 @@ def test_energy_window_cli_refused(tmp_path):
     assert not out.exists()
 
 
-def test_compression_cycle_stabilises_where_the_escapes_cannot(ladder, monkeypatch):
+def test_compression_cycle_stabilises_where_the_escapes_cannot(ladder, monkeypatch, tmp_path):
     """With the directional escapes switched off (MAX_ESCAPES = 0), the constructed saddle is
     made a stable minimum by the compression cycle (to 10x its dphi and back), at the same
-    volume fraction and pressure; the cycle is deterministic (a resumed run repeats it)."""
+    volume fraction and pressure.  The cycle's minimisations go through the checkpoint: a run
+    resumed from it replays them and ends in the same state, bit for bit."""
+    from parjam.checkpoint import Checkpoint
+
     d, (phi_c, packs) = ladder
     stable = packs[1]  # dphi = 1e-8
     saddle = saddle_from(stable)
     monkeypatch.setattr(packing, "MAX_ESCAPES", 0)
+    path = str(tmp_path / "cycle.h5")  # each rank its own (COMM_SELF checkpoints)
     runs = []
     for _ in range(2):
-        jam = Jammer(PETSc.COMM_SELF, saddle)  # (a shared FIRE run costs minutes on 2 ranks)
+        ck = Checkpoint(path, PETSc.COMM_SELF, 1e-9, {"test": "cycle"})  # written every time
+        # (on COMM_SELF: a shared FIRE run costs minutes on 2 ranks)
+        lines = []
+        jam = Jammer(PETSc.COMM_SELF, saddle, progress=lines.append, checkpoint=ck)
         try:
             res, info = jam.stabilise(MinResult("converged", 0.0, 0.0), phi=saddle.phi)
         finally:
             jam.destroy()
-        runs.append((jam.pack, info))
-    (pack, info), (again, _) = runs
+        runs.append((jam.pack, info, ck.loaded, jam.calls, lines))
+    (pack, info, loaded, calls, _), (again, info2, resumed, calls2, lines2) = runs
+    assert not loaded and resumed and calls == calls2 >= 2  # compress, decompress: replayed
+    assert not any("recomputing" in line for line in lines2), lines2
+    assert {k: v for k, v in info2.items() if k != "lowest_curvature_found"} == \
+        {k: v for k, v in info.items() if k != "lowest_curvature_found"}
     assert info["negative_curvatures_found"] >= 1 and info["excess_found"] < 0
     assert info["escapes"] == 0 and info["cycles"] >= 1 and info["stable"] == 1
     after = network.analyze(pack)
@@ -249,6 +262,10 @@ def test_virial_dphi_disagreeing_with_the_label_is_flagged(ladder, capsys):
     err = capsys.readouterr().err
     assert obs["dphi_virial_ok"] == 0 and err.count("\n") == 1
     assert "re-jammed at another phi_c" in err and "1.00e-06" in err
+    rows = [{"member": 0, "state": st.label, "dphi_virial_ok": st.info["dphi_virial_ok"]}
+            for st in states + [off]]
+    assert ensemble.label_line(rows[:-1]) is None
+    assert ensemble.label_line(rows).startswith("labels: 1 state(s) re-jammed")
 
 
 def test_unjammed_ladder_step_keeps_the_jammed_states(shared_tmp, monkeypatch, capsys):
