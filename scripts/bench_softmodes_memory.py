@@ -45,15 +45,20 @@ else:
     from parjam import softmodes as sm
 pack = io.read_packing(path)
 cs = sm.prepare(pack, [sm.Plane(0, 0.5)], allow_hyperstatic=True)
-before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+def maxrss():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+before = maxrss()
+stages = []  # peak so far when analyze reports the count, then the basis
 t0 = time.perf_counter()
 if variant == "old":
-    res = sm.analyze(comm, cs, 0.1, 10)
+    res = sm.analyze(comm, cs, 0.1, 10, lambda msg: stages.append(maxrss()))
 else:
-    res = sm.analyze(comm, cs, 0.1, 10, columns=None if variant == "one block" else columns)
+    res = sm.analyze(comm, cs, 0.1, 10, lambda msg: stages.append(maxrss()),
+                     columns=None if variant == "one block" else columns)
 seconds = time.perf_counter() - t0
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+peak = maxrss()
 print(json.dumps({"before_mb": before, "peak_mb": peak, "seconds": seconds,
+                  "count_mb": stages[0], "basis_mb": stages[1],
                   "n_active": int(cs.n), "q": int(cs.q), "count": int(res.count),
                   "n_soft": int(res.n_soft), "e": res.e.tolist(),
                   "f": res.overlap[:, 1].tolist(), "f_nt": res.overlap[:, 2].tolist()}))
@@ -136,9 +141,9 @@ def page(rows, columns, sizes, made):
         "`extra` = peak - before. Packings: "
         + "; ".join(f"N = {n}: {made[n]}" for n in sizes) + ".",
         "",
-        "| N | N' | q | soft modes | variant | before MB | peak MB | extra MB | extra / old | "
-        "seconds | basis N'dq 8 B (MB) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| N | N' | q | soft modes | variant | before MB | after count MB | after basis MB | "
+        "peak MB | extra MB | extra / old | seconds | one basis N'd n_soft 8 B (MB) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for n in sizes:
         old = rows[(n, "old")]
@@ -147,7 +152,8 @@ def page(rows, columns, sizes, made):
             basis_mb = r["n_active"] * 3 * r["n_soft"] * 8 / 2**20
             extra, extra_old = r["peak_mb"] - r["before_mb"], old["peak_mb"] - old["before_mb"]
             lines.append(f"| {n} | {r['n_active']} | {r['q']} | {r['n_soft']} | {v} | "
-                         f"{r['before_mb']:.0f} | {r['peak_mb']:.0f} | {extra:.0f} | "
+                         f"{r['before_mb']:.0f} | {r['count_mb']:.0f} | {r['basis_mb']:.0f} | "
+                         f"{r['peak_mb']:.0f} | {extra:.0f} | "
                          f"{extra / extra_old:.2f} | {r['seconds']:.1f} | {basis_mb:.0f} |")
     lines += ["", "Agreement with `old` (max |difference| over the extension spectrum e and "
               "f(x) with and without the localised modes; counts equal):", ""]
@@ -161,7 +167,12 @@ def page(rows, columns, sizes, made):
             same = "equal" if r["count"] == old["count"] else "DIFFERENT"
             lines.append(f"- N = {n}, {v}: count {same} ({r['count']}), |de| {de:.1e}, "
                          f"|df| {df:.1e}")
-    lines += ["", "## Extrapolation to N = 1e5 (one cut, 1 rank)", ""]
+    lines += ["", "## Extrapolation to N = 1e5 (one cut, 1 rank)", "",
+              "Each variant's extra memory is split into the MUMPS factors (`after count` - "
+              "`before`: the inertia factorisations, the same size as the factor of M + tau k I "
+              "that the basis keeps and of the uncut M in the variational count), the basis "
+              "copies (N' d n_soft 8 B each) and the rest; each part is fitted as a power of N "
+              "over the sizes measured and summed at N = 1e5.", ""]
     ns = np.array(sizes, float)
     q = np.array([rows[(n, "columns")]["n_soft"] for n in sizes], float)
     aq, bq = fit_power(ns, q)
@@ -169,17 +180,31 @@ def page(rows, columns, sizes, made):
     basis5 = 1e5 * 3 * q5 * 8 / 2**30
     lines.append(f"- Soft modes per cut: n_soft = {aq:.3g} N^{bq:.2f} (fit), {q5:.0f} at "
                  f"N = 1e5 (one basis copy N d n_soft 8 B = {basis5:.1f} GB).")
+    factor = np.array([rows[(n, "columns")]["count_mb"] - rows[(n, "columns")]["before_mb"]
+                       for n in sizes])
+    af, bf = fit_power(ns, factor)
+    factor5 = af * 1e5**bf / 1024
+    lines.append(f"- MUMPS factor (count stage): {af:.3g} N^{bf:.2f} MB -> {factor5:.1f} GB at "
+                 "N = 1e5 (docs/scaling.md's fill fit, 6.48 dof^1.46 entries, gives 5.1 GB).")
     for v in VARIANTS:
+        basis = np.array([rows[(n, v)]["n_active"] * 3 * rows[(n, v)]["n_soft"] * 8 / 2**20
+                          for n in sizes])
         extra = np.array([rows[(n, v)]["peak_mb"] - rows[(n, v)]["before_mb"] for n in sizes])
-        a, b = fit_power(ns, extra)
-        # what scales as the basis: fit extra = c0 + c1 * N n_soft (N n_soft in units of 1e6)
-        nq = ns * q / 1e6
-        c1, c0 = np.polyfit(nq, extra, 1)
-        e5_power = a * 1e5**b / 1024
-        e5_lin = (c0 + c1 * 1e5 * q5 / 1e6) / 1024
-        lines.append(f"- {v}: extra = {a:.3g} N^{b:.2f} MB -> {e5_power:.1f} GB at N = 1e5; "
-                     f"linear in N n_soft: {c0:.0f} MB + {c1:.1f} MB per 1e6 N n_soft "
-                     f"({c1 / (3 * 8 / 2**20 * 1e6):.2f} basis copies) -> {e5_lin:.1f} GB.")
+        copies = (extra - factor) / basis
+        # the single block holds a fixed number of n x n_soft arrays at once (its measured
+        # ratio); the column blocks hold one basis by design, the rest is fitted
+        c = float(np.round(copies[-1])) if v != "columns" else 1.0
+        rest = np.maximum(extra - factor - c * basis, 1.0)
+        ar, br = fit_power(ns, rest)
+        total5 = 0.1 + factor5 + c * basis5 + ar * 1e5**br / 1024
+        lines.append(f"- {v}: (extra - factor) / basis = "
+                     + ", ".join(f"{x:.1f}" for x in copies)
+                     + f" at N = {', '.join(map(str, sizes))}; {c:.0f} basis cop"
+                     f"{'y' if c == 1 else 'ies'} + factor + the rest ({ar:.3g} N^{br:.2f} MB) "
+                     f"+ 0.1 GB before: {total5:.1f} GB at N = 1e5 "
+                     f"({'fits' if total5 < 16 else 'does not fit'} in 16 GB); with the factor "
+                     f"of docs/scaling.md's fill fit (5.1 GB) "
+                     f"{total5 - factor5 + 5.1:.1f} GB.")
     return lines
 
 

@@ -7,7 +7,7 @@ import numpy as np
 
 from parjam import env
 
-ROW_CHUNK = 4096  # rows per chunk of an in-place rotation (temporary ROW_CHUNK x k)
+ROW_CHUNK = 1024  # rows per chunk of a rotation or reduction (temporary ROW_CHUNK x k)
 
 
 def allreduce(comm, x):

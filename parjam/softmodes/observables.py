@@ -125,40 +125,60 @@ def localised_vectors(cs):
 
 
 def localised_complement(comm, cs, V, lo, hi):
-    """(Q, C, W): span(V, translations) minus span(localised, translations) is spanned by the
-    columns of (V - Q C) W, Q an orthonormal basis (local rows) of the localised modes and the
-    translations, C = Q^T V; only small matrices besides Q (n x (#localised + d))."""
+    """(rows, C, W): span(V, translations) minus span(localised, translations) is spanned by the
+    columns of (V - Q C) W, Q an orthonormal basis of the localised modes and the translations,
+    C = Q^T V.  The localised modes live on single particles, so Q is never stored: ``rows(a,
+    z)`` builds its local rows a..z-1 (a chunk); C, W and the Gram matrices are small."""
     d = cs.d
-    loc = localised_vectors(cs)
-    Z = np.zeros(((hi - lo) * d, len(loc) + d))
+    loc = [(p, w) for p, w in localised_vectors(cs)]
+    nl = len(loc)
+    t = 1.0 / np.sqrt(cs.n)
+    # Z = [L, T]: L orthonormal (disjoint particles, or orthonormal directions on one), T the
+    # unit translations; L^T T = w_a / sqrt(n) per localised vector
+    B = np.array([w * t for _, w in loc]).reshape(nl, d)
+    G = np.block([[np.eye(nl), B], [B.T, np.eye(d)]])
+    Rinv = np.linalg.inv(np.linalg.cholesky(G).T)  # Q = Z R^-1 is orthonormal
+    ZtV = np.zeros((nl + d, V.shape[1]))
     for k, (p, w) in enumerate(loc):
         if lo <= p < hi:
-            Z[(p - lo) * d:(p - lo + 1) * d, k] = w
+            ZtV[k] = w @ V[(p - lo) * d:(p - lo + 1) * d]
     for a in range(d):
-        Z[a::d, len(loc) + a] = 1.0 / np.sqrt(cs.n)
-    R = np.linalg.cholesky(gram(comm, Z)).T
-    Q = np.linalg.solve(R.T, Z.T).T  # Z R^-1: orthonormal
-    C = gram(comm, Q, V)
+        ZtV[nl + a] = t * V[a::d].sum(axis=0)
+    C = Rinv.T @ allreduce(comm, ZtV)
     lam, U = replicated_eigh(comm, gram(comm, V) - C.T @ C)  # Gram matrix of V - Q C
     keep = lam > 0.5
-    return Q, C, U[:, keep] / np.sqrt(lam[keep])
+    mine = [(k, p - lo, w) for k, (p, w) in enumerate(loc) if lo <= p < hi]
+
+    def rows(a, z):
+        Z = np.zeros((z - a, nl + d))
+        for k, i, w in mine:  # a particle's d rows may straddle the chunk's ends
+            r0, r1 = max(i * d, a), min((i + 1) * d, z)
+            if r0 < r1:
+                Z[r0 - a:r1 - a, k] = w[r0 - i * d:r1 - i * d]
+        for c in range(d):
+            Z[(np.arange(a, z) % d) == c, nl + c] = t
+        return Z @ Rinv
+
+    return rows, C, U[:, keep] / np.sqrt(lam[keep])
 
 
 def without_localised(comm, cs, V, lo, hi):
     """An orthonormal basis (local rows) of the soft space with the trivially localised modes
     projected out: span(V, translations) minus span(localised, translations)."""
-    Q, C, W = localised_complement(comm, cs, V, lo, hi)
+    rows, C, W = localised_complement(comm, cs, V, lo, hi)
     out = np.empty((V.shape[0], W.shape[1]))
     for a in range(0, V.shape[0], ROW_CHUNK):
-        out[a:a + ROW_CHUNK] = (V[a:a + ROW_CHUNK] - Q[a:a + ROW_CHUNK] @ C) @ W
+        z = min(a + ROW_CHUNK, V.shape[0])
+        out[a:z] = (V[a:z] - rows(a, z) @ C) @ W
     return out
 
 
 def overlap_without_localised(comm, cs, V, lo, hi, u, nbins):
     """f(u) of :func:`without_localised`'s basis, built one row chunk at a time."""
-    Q, C, W = localised_complement(comm, cs, V, lo, hi)
+    rows, C, W = localised_complement(comm, cs, V, lo, hi)
     diag = np.empty(V.shape[0])
     for a in range(0, V.shape[0], ROW_CHUNK):
-        rows = (V[a:a + ROW_CHUNK] - Q[a:a + ROW_CHUNK] @ C) @ W
-        diag[a:a + ROW_CHUNK] = np.einsum("ij,ij->i", rows, rows)
+        z = min(a + ROW_CHUNK, V.shape[0])
+        P = (V[a:z] - rows(a, z) @ C) @ W
+        diag[a:z] = np.einsum("ij,ij->i", P, P)
     return overlap_from_squares(comm, diag, u, nbins, W.shape[1])
