@@ -160,8 +160,7 @@ def active_system(pack, net=None):
 def distributed_system(net):
     """The non-rattler system of a distributed network (parjam.active): this rank's rows and
     half-edges only; ParjamError/UnjammedError if it cannot vibrate (collective)."""
-    n_all = net.comm.allreduce(len(net.all_contacts))
-    check_vibrates(net.n, net.d, n_all, net.n_active, net.n_contacts, net.n_iso)
+    check_vibrates(net.n, net.d, net.n_all_contacts, net.n_active, net.n_contacts, net.n_iso)
     c = net.contacts
     return ActiveSystem(
         n=net.n_active, d=net.d, active=None, i=c.i, j=c.j, rij=c.rij, r=c.r, sigma=c.sigma,
