@@ -68,13 +68,14 @@ class ActiveSystem:
     n_iso: int
     pressure: float
     max_force: float
-    n_contacts: int = -1  # Nc (global); -1: len(r) in the replicated layout
     rows: tuple = None
     ids: np.ndarray = None
+    nc_global: int = -1  # Nc of the distributed layout (the half-edges are this rank's)
 
-    def __post_init__(self):
-        if self.n_contacts < 0:
-            self.n_contacts = len(self.r)
+    @property
+    def n_contacts(self):
+        """Nc, the contacts among the non-rattlers."""
+        return len(self.r) if self.rows is None else self.nc_global
 
     @property
     def dof(self):
@@ -165,8 +166,8 @@ def distributed_system(net):
     return ActiveSystem(
         n=net.n_active, d=net.d, active=None, i=c.i, j=c.j, rij=c.rij, r=c.r, sigma=c.sigma,
         alpha=net.alpha, eps=net.eps, n_rattlers=net.n_rattlers, n_iso=net.n_iso,
-        pressure=net.pressure, max_force=net.max_force, n_contacts=net.n_contacts,
-        rows=net.rows, ids=net.ids)
+        pressure=net.pressure, max_force=net.max_force, rows=net.rows, ids=net.ids,
+        nc_global=net.n_contacts)
 
 
 def build_matrix(comm, system, blocks, fmt="aij"):
