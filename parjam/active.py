@@ -36,7 +36,7 @@ from parjam.system import pair_separation, sphere_volume
 @dataclass
 class Contacts:
     """Local half-edges: i owned, j owned or ghost, both given by their *global active numbers*
-    (or, for ``all_contacts``, rows of [owned; ghosts]); rij = x_j - x_i."""
+    (or, inside ``build``, rows of [owned; ghosts]); rij = x_j - x_i."""
 
     i: np.ndarray
     j: np.ndarray
@@ -77,8 +77,7 @@ class ActiveNetwork(NetworkNumbers):
     owned_ids: np.ndarray  # global ids of every owned particle (rattlers too)
     rattler: np.ndarray  # owned particles: rattler flag
     contacts: Contacts  # half-edges among non-rattlers, global active numbers
-    all_contacts: Contacts  # every half-edge (rattlers too), i and j rows of [owned; ghosts]
-    all_ids_j: np.ndarray  # global particle id of all_contacts.j
+    n_all_contacts: int  # every contact, rattlers' too (global)
     energy: float
     stress: np.ndarray  # (1/V) sum_contacts -V'(r) r_a r_b / r (compressive positive)
     max_force: float
@@ -216,8 +215,8 @@ def build(comm, x, diam, ids, L, alpha=2.0, eps=1.0, coincide=1e-9):
     return ActiveNetwork(
         comm=comm, d=d, n=n, n_active=comm.allreduce(hi - lo), n_contacts=nc, lo=lo, hi=hi,
         L=dom.L, alpha=float(alpha), eps=float(eps), phi=float(sums[3] / volume),
-        ids=ids[~rattler], owned_ids=ids, rattler=rattler, contacts=act, all_contacts=allc,
-        all_ids_j=gid[allc.j], energy=float(sums[1]), stress=stress,
+        ids=ids[~rattler], owned_ids=ids, rattler=rattler, contacts=act,
+        n_all_contacts=comm.allreduce(len(allc)) // 2, energy=float(sums[1]), stress=stress,
         max_force=comm.allreduce(float(fnorm.max()) if len(fnorm) else 0.0, op=max_op()),
         mean_force=float(sums[2] / nc) if nc else 0.0)
 

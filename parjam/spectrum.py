@@ -68,13 +68,14 @@ class ActiveSystem:
     n_iso: int
     pressure: float
     max_force: float
-    n_contacts: int = -1  # Nc (global); -1: len(r) in the replicated layout
     rows: tuple = None
     ids: np.ndarray = None
+    nc_global: int = -1  # Nc of the distributed layout (the half-edges are this rank's)
 
-    def __post_init__(self):
-        if self.n_contacts < 0:
-            self.n_contacts = len(self.r)
+    @property
+    def n_contacts(self):
+        """Nc, the contacts among the non-rattlers."""
+        return len(self.r) if self.rows is None else self.nc_global
 
     @property
     def dof(self):
@@ -160,14 +161,13 @@ def active_system(pack, net=None):
 def distributed_system(net):
     """The non-rattler system of a distributed network (parjam.active): this rank's rows and
     half-edges only; ParjamError/UnjammedError if it cannot vibrate (collective)."""
-    n_all = net.comm.allreduce(len(net.all_contacts))
-    check_vibrates(net.n, net.d, n_all, net.n_active, net.n_contacts, net.n_iso)
+    check_vibrates(net.n, net.d, net.n_all_contacts, net.n_active, net.n_contacts, net.n_iso)
     c = net.contacts
     return ActiveSystem(
         n=net.n_active, d=net.d, active=None, i=c.i, j=c.j, rij=c.rij, r=c.r, sigma=c.sigma,
         alpha=net.alpha, eps=net.eps, n_rattlers=net.n_rattlers, n_iso=net.n_iso,
-        pressure=net.pressure, max_force=net.max_force, n_contacts=net.n_contacts,
-        rows=net.rows, ids=net.ids)
+        pressure=net.pressure, max_force=net.max_force, rows=net.rows, ids=net.ids,
+        nc_global=net.n_contacts)
 
 
 def build_matrix(comm, system, blocks, fmt="aij"):

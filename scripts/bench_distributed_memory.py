@@ -63,13 +63,15 @@ def main():
     ap.add_argument("--commands", nargs="+", default=list(COMMANDS), choices=list(COMMANDS))
     ap.add_argument("--work", default=None, help="directory for the tiled packings")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "bench-distributed-memory.md"))
+    ap.add_argument("--append", action="store_true", help="add the rows to --out's table")
     args = ap.parse_args()
     work = args.work or tempfile.mkdtemp(prefix="parjam-bench-mem-")
     rows = []
     for spec in args.tiles:
         ranks, small, k = spec.split(":")
         ranks, k = int(ranks), int(k)
-        big = os.path.join(work, f"tiled_{os.path.basename(small)}_{k}.h5")
+        tag = os.path.splitext(os.path.relpath(small))[0].replace(os.sep, "_")
+        big = os.path.join(work, f"tiled_{tag}_k{k}.h5")
         if not os.path.exists(big):
             made = subprocess.run([PY, os.path.join(ROOT, "scripts", "tile_packing.py"), small,
                                    str(k), big], capture_output=True, text=True, check=True)
@@ -92,22 +94,32 @@ def main():
 
 
 def write(path, rows, args):
+    table = [table_row(*row) for row in rows]
+    if args.append and os.path.exists(path):
+        with open(path) as fh:
+            old = fh.read().rstrip("\n").split("\n")
+        with open(path, "w") as fh:
+            fh.write("\n".join(old + table) + "\n")
+        print(f"appended to {path}")
+        return
     lines = ["# Peak memory per rank of the distributed analysis (issue 19)", "",
              "Written by `scripts/bench_distributed_memory.py` (old = main's `parjam`, new = this "
              "tree, in one run; 3D packings tiled from small jammed ones by "
              "`scripts/tile_packing.py`; peak RSS per rank from /usr/bin/time, the largest over "
              "the ranks; ranks oversubscribed on a 2-core machine, which does not change memory).",
-             "", f"Points: {' '.join(args.tiles)}", "",
+             "",
              "| command | P | N | N/P | old MB/rank | new MB/rank | new/old | old s | new s |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for name, ranks, n, old, new in rows:
-        flag = "" if new[2] == 0 and old[2] == 0 else f" (exit {old[2]}/{new[2]})"
-        lines.append(f"| {name}{flag} | {ranks} | {n} | {n // ranks} | {old[0]:.0f} | "
-                     f"{new[0]:.0f} | {new[0] / old[0]:.2f} | {old[1]:.1f} | {new[1]:.1f} |")
-    lines.append("")
+             "|---|---|---|---|---|---|---|---|---|"] + table
     with open(path, "w") as fh:
-        fh.write("\n".join(lines))
+        fh.write("\n".join(lines) + "\n")
     print(f"wrote {path}")
+
+
+def table_row(name, ranks, n, old, new):
+    """One markdown row; a run that failed shows its exit codes (old/new)."""
+    flag = "" if new[2] == 0 and old[2] == 0 else f" (exit {old[2]}/{new[2]})"
+    return (f"| {name}{flag} | {ranks} | {n} | {n // ranks} | {old[0]:.0f} | {new[0]:.0f} | "
+            f"{new[0] / old[0]:.2f} | {old[1]:.1f} | {new[1]:.1f} |")
 
 
 if __name__ == "__main__":
