@@ -109,6 +109,9 @@ class SlabEngine:
     def _plan(self):
         """Ghosts, the force arrays and the pair list for the owned rows (collective)."""
         n_own, d = len(self.ids), self.d
+        # the last list's arrays go first (a rebuild's peak memory), its length sizes the next
+        cap = int(1.25 * len(self.pi)) + 1024 if getattr(self, "pi", None) is not None else None
+        self.kernel = self.pi = self.pj = self.f = self.ref = self.pdiam = None
         xw = self.domain.wrap(self.xu)
         halo = self.domain.halo(xw, self.ids, self.cut)
         # the ghosts' positions and diameters in one exchange
@@ -129,7 +132,7 @@ class SlabEngine:
         low = low[kinds[low] != 1]
         self.pi, self.pj = kernels.slab_pairs(np.concatenate([xw, halo.x]), self.L, self.cut,
                                               np.concatenate([np.arange(n_own), row]), gid,
-                                              kinds, low)
+                                              kinds, low, cap)
         self.halo, self.foreign = halo, foreign
         self.all_foreign = len(foreign) == halo.n
         self.pos = np.empty((n_own + len(foreign), d))  # [owned; ghosts of other ranks]
