@@ -307,57 +307,17 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
     return count <= cap ? count : -count;
 }
 
-/* Neighbour search of one slab (kernels.slab_pairs, parjam.engine): n search points -- a rank's
- * owned particles (kind 0), images of its own particles across the periodic boundary (kind 1)
- * and ghosts of other ranks (kind 2) -- open along axis 0 (the halo is unwrapped there) and
- * periodic with edge L along the others.  A pair of points closer than ``cutoff`` is kept when
- * one end is an owned particle and the other has a larger global id ``gid``; a pair whose upper
- * end is an own image is kept only from an owned lower end (each physical pair once).  The pairs
- * come out as rows ``row[a]`` < ... of the force arrays, grouped by their lower end in the order
- * ``low`` (kinds 0 and 2 by global id) and, within a group, by the upper end's global id: the
- * global (i, j) order, so the contact forces on a particle are summed in the same order on any
- * number of ranks.  Cells: nx of edge w0 along axis 0 from x0min, nc of edge L / nc along the
- * others (every cell once when nc < 3).  Scratch: start (ncells + 1), order, cellof (n), sp (n d).
- * Returns the number of pairs, or -(number needed) when cap is too small. */
-int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double cutoff,
-                          double x0min, double w0, int64_t nx, int64_t nc, const int64_t *row,
-                          const int64_t *gid, const int64_t *kind, int64_t nlow,
-                          const int64_t *low, int64_t *start, int64_t *order, int64_t *cellof,
-                          double *sp, int64_t *sg, int64_t cap, int64_t *pi, int64_t *pj)
+/* The search loop of parjam_slab_pairs, inlined with d and ``wide`` constant at its call
+ * sites (the loops over d unroll, the periodic branch goes). */
+static ALWAYS_INLINE int64_t slab_loop(int d, const int wide, const double *pos, double L,
+                                       double cutoff, int64_t nx, int64_t nc, const int64_t *row,
+                                       const int64_t *gid, const int64_t *kind, int64_t nlow,
+                                       const int64_t *low, const int64_t *start,
+                                       const int64_t *order, const int64_t *cellof,
+                                       const double *sp, const int64_t *sg, int64_t cap,
+                                       int64_t *pi, int64_t *pj)
 {
-    int64_t ncells = nx;
-    for (int a = 1; a < d; a++)
-        ncells *= nc;
-    for (int64_t c = 0; c <= ncells; c++)
-        start[c] = 0;
-    const double scale = nc / L;
-    for (int64_t k = 0; k < n; k++) {
-        int64_t m = (int64_t)((pos[k * d] - x0min) / w0);
-        int64_t c = m < 0 ? 0 : (m >= nx ? nx - 1 : m);
-        for (int a = 1; a < d; a++) {
-            m = (int64_t)(pos[k * d + a] * scale);
-            c = c * nc + (m < 0 ? 0 : (m >= nc ? nc - 1 : m));
-        }
-        cellof[k] = c;
-        start[c + 1]++;
-    }
-    for (int64_t c = 0; c < ncells; c++)
-        start[c + 1] += start[c];
-    for (int64_t k = 0; k < n; k++)
-        order[start[cellof[k]]++] = k;
-    for (int64_t c = ncells; c > 0; c--)
-        start[c] = start[c - 1];
-    start[0] = 0;
-    /* positions, and the global id (times 2, plus 1 for a non-owned point), in cell order, so
-     * that a cell's candidates are read contiguously */
-    for (int64_t q = 0; q < n; q++) {
-        const int64_t k = order[q];
-        for (int a = 0; a < d; a++)
-            sp[q * d + a] = pos[k * d + a];
-        sg[q] = 2 * gid[k] + (kind[k] != 0);
-    }
     const double cut2 = cutoff * cutoff;
-    const int wide = nc >= 3;        /* periodic neighbours m-1, m, m+1; else every cell once */
     const int64_t span = wide ? 3 : nc;
     const int64_t span2 = d == 3 ? span : 1;
     int64_t count = 0;
@@ -436,4 +396,64 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
         }
     }
     return count <= cap ? count : -count;
+}
+
+/* Neighbour search of one slab (kernels.slab_pairs, parjam.engine): n search points -- a rank's
+ * owned particles (kind 0), images of its own particles across the periodic boundary (kind 1)
+ * and ghosts of other ranks (kind 2) -- open along axis 0 (the halo is unwrapped there) and
+ * periodic with edge L along the others.  A pair of points closer than ``cutoff`` is kept when
+ * one end is an owned particle and the other has a larger global id ``gid``; a pair whose upper
+ * end is an own image is kept only from an owned lower end (each physical pair once).  The pairs
+ * come out as rows ``row[a]`` < ... of the force arrays, grouped by their lower end in the order
+ * ``low`` (kinds 0 and 2 by global id) and, within a group, by the upper end's global id: the
+ * global (i, j) order, so the contact forces on a particle are summed in the same order on any
+ * number of ranks.  Cells: nx of edge w0 along axis 0 from x0min, nc of edge L / nc along the
+ * others (every cell once when nc < 3).  Scratch: start (ncells + 1), order, cellof, sg (n), sp (n d).
+ * Returns the number of pairs, or -(number needed) when cap is too small. */
+int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double cutoff,
+                          double x0min, double w0, int64_t nx, int64_t nc, const int64_t *row,
+                          const int64_t *gid, const int64_t *kind, int64_t nlow,
+                          const int64_t *low, int64_t *start, int64_t *order, int64_t *cellof,
+                          double *sp, int64_t *sg, int64_t cap, int64_t *pi, int64_t *pj)
+{
+    int64_t ncells = nx;
+    for (int a = 1; a < d; a++)
+        ncells *= nc;
+    for (int64_t c = 0; c <= ncells; c++)
+        start[c] = 0;
+    const double scale = nc / L;
+    for (int64_t k = 0; k < n; k++) {
+        int64_t m = (int64_t)((pos[k * d] - x0min) / w0);
+        int64_t c = m < 0 ? 0 : (m >= nx ? nx - 1 : m);
+        for (int a = 1; a < d; a++) {
+            m = (int64_t)(pos[k * d + a] * scale);
+            c = c * nc + (m < 0 ? 0 : (m >= nc ? nc - 1 : m));
+        }
+        cellof[k] = c;
+        start[c + 1]++;
+    }
+    for (int64_t c = 0; c < ncells; c++)
+        start[c + 1] += start[c];
+    for (int64_t k = 0; k < n; k++)
+        order[start[cellof[k]]++] = k;
+    for (int64_t c = ncells; c > 0; c--)
+        start[c] = start[c - 1];
+    start[0] = 0;
+    /* positions, and the global id (times 2, plus 1 for a non-owned point), in cell order, so
+     * that a cell's candidates are read contiguously */
+    for (int64_t q = 0; q < n; q++) {
+        const int64_t k = order[q];
+        for (int a = 0; a < d; a++)
+            sp[q * d + a] = pos[k * d + a];
+        sg[q] = 2 * gid[k] + (kind[k] != 0);
+    }
+    const int wide = nc >= 3; /* periodic neighbours m-1, m, m+1; else every cell once */
+    if (d == 3 && wide)
+        return slab_loop(3, 1, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
+                         cellof, sp, sg, cap, pi, pj);
+    if (d == 2 && wide)
+        return slab_loop(2, 1, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
+                         cellof, sp, sg, cap, pi, pj);
+    return slab_loop(d, 0, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
+                     cellof, sp, sg, cap, pi, pj);
 }

@@ -25,6 +25,8 @@ The positions are kept unwrapped between rebuilds (a particle's coordinates chan
 FIRE's updates): the wrapped copy a rebuild needs for ownership and search is temporary.
 """
 
+import contextlib
+
 import numpy as np
 
 from parjam import kernels
@@ -82,13 +84,11 @@ class SlabEngine:
         with event(REBUILD):
             with event(MIGRATE):
                 if self.size > 1:
-                    xu = self.xu
-                    leaving = np.count_nonzero(self.domain.owner(xu) != self.rank)
-                    _, ids, fl = self.domain.migrate(xu, self.ids, {"xu": xu, "v": self.v,
-                                                                    "diam": self.diam})
+                    leaving = np.count_nonzero(self.domain.owner(self.xu) != self.rank)
+                    ids, fl = self._migrate(self.xu, self.ids, self.v, self.diam)
                     if rebalance or self.domain.imbalance(len(ids)) > REBALANCE:
                         self.domain = SlabDomain.balanced(self.comm, self.L, fl["xu"])
-                        _, ids, fl = self.domain.migrate(fl["xu"], ids, fl)
+                        ids, fl = self._migrate(fl["xu"], ids, fl["v"], fl["diam"])
                     self.n_migrated += int(leaving)
                 else:  # one slab: nothing to hand over
                     ids, fl = self.ids, {"xu": self.xu, "v": self.v, "diam": self.diam}
@@ -96,12 +96,28 @@ class SlabEngine:
             self._plan()
             self.n_rebuilds += 1
 
+    def _migrate(self, xu, ids, v, diam):
+        """SlabDomain.migrate of the rows, their fields packed into one array (one exchange)."""
+        d = self.d
+        packed = np.concatenate([xu, v, diam[:, None]], axis=1)
+        _, ids, fl = self.domain.migrate(xu, ids, {"p": packed})
+        p = fl["p"]
+        return ids, {"xu": np.ascontiguousarray(p[:, :d]),
+                     "v": np.ascontiguousarray(p[:, d:2 * d]),
+                     "diam": np.ascontiguousarray(p[:, 2 * d])}
+
     def _plan(self):
         """Ghosts, the force arrays and the pair list for the owned rows (collective)."""
         n_own, d = len(self.ids), self.d
+        # the last list's arrays go first (a rebuild's peak memory), its length sizes the next
+        cap = int(1.25 * len(self.pi)) + 1024 if getattr(self, "pi", None) is not None else None
+        self.kernel = self.pi = self.pj = self.f = self.ref = self.pdiam = None
         xw = self.domain.wrap(self.xu)
         halo = self.domain.halo(xw, self.ids, self.cut)
-        g_diam = halo.pull(self.diam)
+        # the ghosts' positions and diameters in one exchange
+        with event(HALO) if self.size > 1 else contextlib.nullcontext():  # one rank: a copy
+            got = halo.pull(np.concatenate([self.xu, self.diam[:, None]], axis=1))
+        g_xu, g_diam = got[:, :d], got[:, d]
         src = np.repeat(np.arange(self.size), halo.recv_counts)[halo.order]
         image = src == self.rank  # own particles seen across the periodic boundary
         foreign = np.flatnonzero(~image)
@@ -116,7 +132,7 @@ class SlabEngine:
         low = low[kinds[low] != 1]
         self.pi, self.pj = kernels.slab_pairs(np.concatenate([xw, halo.x]), self.L, self.cut,
                                               np.concatenate([np.arange(n_own), row]), gid,
-                                              kinds, low)
+                                              kinds, low, cap)
         self.halo, self.foreign = halo, foreign
         self.all_foreign = len(foreign) == halo.n
         self.pos = np.empty((n_own + len(foreign), d))  # [owned; ghosts of other ranks]
@@ -128,7 +144,8 @@ class SlabEngine:
         self.v = np.ascontiguousarray(self.v)
         self.kernel = kernels.FireKernel(self.xu, self.v, self.f, self.ref, self.pi, self.pj,
                                          self.pos, self.pdiam, self.sums)
-        self._refresh()
+        self.pos[n_own:] = g_xu[foreign]
+        self.fresh = True
 
     def _refresh(self):
         """The ghosts' positions from their owners (collective; a no-op on one rank, where

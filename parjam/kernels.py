@@ -292,13 +292,15 @@ def cell_pairs(pos, L, cutoff, lo, hi):
     return np.stack([key // n, key % n], axis=1)
 
 
-def slab_pairs(pos, L, cutoff, row, gid, kind, low):
+def slab_pairs(pos, L, cutoff, row, gid, kind, low, cap=None):
     """The pairs of one slab's search points (parjam.engine): ``pos`` (n, d) open along axis 0,
     folded into [0, L) along the others; ``kind`` 0 for owned particles, 1 for images of owned
     ones across the periodic boundary, 2 for other ranks' ghosts; ``low`` the points of kinds 0
     and 2 in global-id order.  Returns (pi, pj), rows ``row[.]`` of the pairs closer than
     ``cutoff`` with an owned end, each physical pair once, in global (i, j) order (see
-    ``parjam_slab_pairs``).  Compiled cells; the numpy fallback uses a k-d tree."""
+    ``parjam_slab_pairs``).  ``cap``: the expected number of pairs (e.g. the last list's, with
+    a margin; more are found by a second pass).  Compiled cells; the numpy fallback uses a k-d
+    tree."""
     pos = np.ascontiguousarray(pos, dtype=np.float64)
     n, d = pos.shape
     row, gid, kind, low = (np.ascontiguousarray(a, dtype=np.int64) for a in (row, gid, kind, low))
@@ -321,13 +323,15 @@ def slab_pairs(pos, L, cutoff, row, gid, kind, low):
     start = np.empty(nx * nc ** (d - 1) + 1, dtype=np.int64)
     order, cellof = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
     sp, sg = np.empty((n, d)), np.empty(n, dtype=np.int64)
-    cap = 8 * n + 1024
+    cap = 4 * n + 1024 if cap is None else int(cap)
     while True:
         pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
         got = lib.parjam_slab_pairs(n, d, pos, L, cutoff, x0min, w0, nx, nc, row, gid, kind,
                                     len(low), low, start, order, cellof, sp, sg, cap, pi, pj)
         if got >= 0:
-            return pi[:got].copy(), pj[:got].copy()
+            if got < 0.7 * cap:  # a loose first guess: no idle capacity kept
+                return pi[:got].copy(), pj[:got].copy()
+            return pi[:got], pj[:got]
         cap = -got
 
 

@@ -179,3 +179,27 @@ def test_the_same_on_three_ranks():
                          cwd=ROOT, env=subprocess_env(), capture_output=True, text=True,
                          timeout=600)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+
+
+def test_the_numpy_slab_search_lists_the_compiled_ones_pairs(monkeypatch):
+    """kernels.slab_pairs: the k-d tree fallback (PARJAM_KERNELS=numpy) lists the same pairs in
+    the same order as the compiled cell search, in a thin box (every cell once) and a wide one."""
+    for n, L in ((30, 2.4 * 1.2), (400, None)):
+        if L is None:
+            pack = quenched(3, "bi", n, 0.6, 0)
+            pos, diam, L = pack.pos, pack.diam, pack.L
+        else:
+            rng = np.random.default_rng(4)
+            pos, diam = rng.uniform(0, L, (n, 3)), np.full(n, 1.0)
+        mine = np.arange(COMM.rank, n, COMM.size)
+        lists = []
+        for kind in ("", "numpy"):
+            monkeypatch.setenv("PARJAM_KERNELS", kind)
+            kernels.reset()
+            eng = SlabEngine(COMM, L, 2.0, 1.0, 0.2, pos[mine], mine, diam[mine])
+            lists.append((eng.pi, eng.pj, eng.ids))
+        monkeypatch.delenv("PARJAM_KERNELS")
+        kernels.reset()
+        for a, b in zip(*lists):
+            np.testing.assert_array_equal(a, b)
+        assert len(lists[0][0]) > 0
