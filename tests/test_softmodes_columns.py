@@ -162,3 +162,13 @@ def test_bad_columns_is_one_line_exit_2_and_no_file(comm, tmpdir_all, capsys, ba
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert len(lines) == 1 and lines[0].startswith("parjam: error:")
         assert "--columns must lie in [1, 100000]" in lines[0]
+
+
+def test_each_column_block_starts_from_its_columns_of_one_matrix():
+    """The random start of a block is the block's columns of one global matrix, whatever the
+    row split and the column blocks (tiles of 3072 rows x 64 columns, each with its own seed)."""
+    whole = sm.random_block(0, 7000, 150, seed=4)
+    for first, k in [(0, 13), (13, 64), (77, 73), (60, 8)]:
+        parts = np.concatenate([sm.random_block(a, z, k, seed=4, first=first)
+                                for a, z in [(0, 3000), (3000, 3072), (3072, 7000)]])
+        assert np.array_equal(parts, whole[:, first:first + k])
