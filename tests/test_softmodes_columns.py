@@ -1,4 +1,4 @@
-"""The column-block null-space method (parjam.softmodes.nullspace, ``parjam softmodes
+"""The soft-mode count d + q - 1 - (Nc - Nc_iso) and the column-block null-space method (parjam.softmodes.nullspace, ``parjam softmodes
 --columns``): blocks of any width span the same null space as the single block (principal
 cosines 1), satisfy Eq. 3 and are orthonormal; counts, extensions, f(x) and trial energies agree
 to round-off, on 1 rank and on 2; f(x) does not depend on the basis of the null space; a bad
@@ -15,6 +15,7 @@ from parjam import cli, env, io, softmodes as sm
 PETSc = env.petsc()
 DATA = os.path.join(os.path.dirname(__file__), "data")
 ISO = ["ref_d3_mono_N128_dphi1e-06.h5", "ref_d2_bi_N128_dphi1e-06.h5"]
+HYPER = ["ref_d3_mono_N128_dphi1e-03.h5", "ref_d2_bi_N128_dphi1e-03.h5"]
 LARGER = "soft_d3_N512_m0.h5"
 
 
@@ -66,6 +67,18 @@ def test_blocks_span_the_single_block_null_space(comm, name, subdivide, widths):
         cos = np.linalg.svd(sm.gram(comm, ref.V, nb.V), compute_uv=False)
         assert np.allclose(cos, 1.0, atol=1e-9), (w, cos.min())
         assert nb.gap == pytest.approx(ref.gap, rel=1e-6) and nb.gap > 1e-6 * scale
+
+
+@pytest.mark.parametrize("name", ISO + HYPER)
+def test_count_is_d_plus_q_minus_1_minus_the_excess(comm, name):
+    """Sec. II: the inertia count of the cut system is d + q - 1 - (Nc - Nc_iso), for the
+    isostatic packings and for those 7-13 contacts above isostatic."""
+    cs = cut_system(name)
+    M = sm.relaxed_matrix(comm, cs, cs.kept)
+    count = sm.null_count(comm, M, sm.stiffness_scale(cs.kept, cs.alpha, cs.eps))
+    M.destroy()
+    assert count == cs.expected_general == sm.expected_zero_modes(cs.d, cs.q, cs.excess)
+    assert (cs.excess == 0) == (cs.expected == cs.expected_general)
 
 
 @pytest.mark.parametrize("name", ISO)
@@ -149,3 +162,13 @@ def test_bad_columns_is_one_line_exit_2_and_no_file(comm, tmpdir_all, capsys, ba
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert len(lines) == 1 and lines[0].startswith("parjam: error:")
         assert "--columns must lie in [1, 100000]" in lines[0]
+
+
+def test_each_column_block_starts_from_its_columns_of_one_matrix():
+    """The random start of a block is the block's columns of one global matrix, whatever the
+    row split and the column blocks (tiles of 3072 rows x 64 columns, each with its own seed)."""
+    whole = sm.random_block(0, 7000, 150, seed=4)
+    for first, k in [(0, 13), (13, 64), (77, 73), (60, 8)]:
+        parts = np.concatenate([sm.random_block(a, z, k, seed=4, first=first)
+                                for a, z in [(0, 3000), (3000, 3072), (3072, 7000)]])
+        assert np.array_equal(parts, whole[:, first:first + k])

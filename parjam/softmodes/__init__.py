@@ -23,7 +23,8 @@ from parjam.errors import ParjamError
 from parjam.softmodes.analysis import SoftModes, analyze, characterise
 from parjam.softmodes.basis import (BASIS_METHODS, COLUMNS_DEFAULT, COLUMNS_MAX, NullBasis,
                                     eq3_residual)
-from parjam.softmodes.counting import count_below, null_count, variational_count
+from parjam.softmodes.counting import (count_below, expected_zero_modes, null_count,
+                                       variational_count)
 from parjam.softmodes.cut import (AXES, ActiveNetwork, CutSystem, Plane, active_network,
                                   crossing, cut_masks, parse_cut, prepare, subdivision_planes)
 from parjam.softmodes.krylov import null_basis_krylov
@@ -42,7 +43,7 @@ __all__ = [
     "AXES", "ActiveNetwork", "BASIS_METHODS", "COLUMNS_DEFAULT", "COLUMNS_MAX", "CutSystem",
     "E0_LADDER", "NullBasis", "ParjamError", "Plane", "SoftModes", "active_network", "allmax",
     "allreduce", "analyze", "characterise", "coordinate_from_plane", "count_below", "crossing",
-    "cut_masks", "energies", "eq3_residual", "extended_basis", "extended_fraction",
+    "cut_masks", "energies", "eq3_residual", "expected_zero_modes", "extended_basis", "extended_fraction",
     "extension", "gap_above", "gather_columns", "gradient_bound", "gram", "localised_vectors",
     "modulation", "null_basis", "null_basis_block", "null_basis_krylov", "null_count",
     "omega_L2", "orthonormality_error", "overlap_function", "overlap_without_localised",

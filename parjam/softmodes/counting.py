@@ -7,6 +7,14 @@ from parjam import env, factor
 from parjam.errors import ParjamError
 
 
+def expected_zero_modes(d, q, excess):
+    """d + q - 1 - (Nc - Nc_iso) (Sec. II): the rigidity matrix of Nc contacts among N'
+    particles has Nc - Nc_iso + 1 self-stresses (isostatic: one); each cut first removes one of
+    them, then opens a floppy mode, so once q > Nc - Nc_iso the null space is the d translations
+    plus q - 1 - (Nc - Nc_iso) floppy modes."""
+    return d + q - 1 - excess
+
+
 def count_below(comm, M, s, prefix="soft_inertia_"):
     """Number of eigenvalues of the symmetric M below s: the negative inertia of M - s I from a
     MUMPS LDL^T factorisation (SBAIJ; ICNTL(13) = 1 makes the inertia exact on several ranks)."""

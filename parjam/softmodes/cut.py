@@ -14,6 +14,7 @@ import numpy as np
 from parjam import network, potential
 from parjam.errors import ParjamError
 from parjam.network import Contacts
+from parjam.softmodes.counting import expected_zero_modes
 
 AXES = "xyz"
 
@@ -148,8 +149,13 @@ class CutSystem:
     def expected(self):
         """Null-space dimension of an isostatic packing after q cuts, d + q - 1 (Sec. II): the
         d translations plus q - 1 floppy modes (the first cut removes the single self-stress
-        instead); in general d + q - 1 - (Nc - Nc_iso) (:mod:`parjam.softmodes.counting`)."""
-        return self.d + self.q - 1
+        instead); in general :attr:`expected_general`."""
+        return expected_zero_modes(self.d, self.q, 0)
+
+    @property
+    def expected_general(self):
+        """d + q - 1 - (Nc - Nc_iso): the null-space dimension for any excess below q."""
+        return expected_zero_modes(self.d, self.q, self.excess)
 
     def degree(self, kept=True):
         c = self.kept if kept else self.contacts
