@@ -6,7 +6,8 @@ side by side in one run.  Run by hand, never in the test suite:
 
     source scripts/mpi-env
     nice -n 10 .venv/bin/python scripts/bench_distributed_memory.py \
-        --tiles P:SMALL.h5:K ... --old /work/main/.venv/bin/parjam --out docs/bench-distributed-memory.md
+        --tiles P:SMALL.h5:K ... --old /work/main/.venv/bin/parjam \
+        --out docs/bench-distributed-memory.md
 
 Each ``--tiles P:SMALL:K`` is one point: the packing SMALL tiled K^d times
 (scripts/tile_packing.py) run on P ranks.  Every rank runs under /usr/bin/time, which reports
