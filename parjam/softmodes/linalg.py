@@ -76,13 +76,18 @@ def random_block(lo, hi, k, seed, rows=3072, cols=64, first=0):
 
 def deflated(comm, X, *bases):
     """X with the columns of the orthonormal ``bases`` (mutually orthogonal) projected out,
-    twice (classical Gram-Schmidt with one re-orthogonalisation; block by block for a scratch
-    basis); temporaries are X-sized."""
+    twice (classical Gram-Schmidt with one re-orthogonalisation); temporaries are X-sized.  A
+    basis on disk goes first, block by block, each block read once and projected out twice
+    (block Gram-Schmidt: half the reads of two sweeps); the arrays follow."""
+    for U in bases:
+        if hasattr(U, "column_blocks"):
+            for B in U.column_blocks():
+                for _ in range(2):
+                    X = X - B @ gram(comm, B, X)
     for _ in range(2):
         for U in bases:
-            for B in column_blocks(U):
-                if B.shape[1]:
-                    X = X - B @ gram(comm, B, X)
+            if not hasattr(U, "column_blocks") and U.shape[1]:
+                X = X - U @ gram(comm, U, X)
     return X
 
 
