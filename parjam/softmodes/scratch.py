@@ -12,6 +12,10 @@ column block is one contiguous read and a row chunk one read per block.  Reads a
 ``os.pread``/``os.pwrite`` into fresh arrays: nothing stays mapped, so the basis never counts in
 the resident set (unlike ``numpy.memmap``, whose touched pages do).
 
+The scratch is asked for, never automatic: the basis size is known only after the inertia
+count, and whether its file is better on disk than in memory depends on the machine's free
+memory and disk, which the user knows (the estimate is N' d n_soft 8 bytes per cut).
+
 :func:`scratch_space` makes the temporary directory and removes it, with its files, on exit,
 also on error.
 """
@@ -81,7 +85,6 @@ class ScratchBasis:
         self.fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
         self.blocks = []  # (first column, width, byte offset)
         self.end = 0  # bytes written
-        self.ndim = 2
 
     @property
     def shape(self):
