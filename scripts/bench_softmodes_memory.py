@@ -2,11 +2,16 @@
 """Peak memory of one soft-mode cut (3D, one plane at x = L/2, block null-space method, 1 rank):
 main's single-block module (``git show d5de07f:parjam/softmodes.py``, imported from a temporary
 directory) against the column-block package ``parjam.softmodes`` (``--columns 64``, and one block
-for reference), side by side in one run.  Run by hand, never in the test suite:
+for reference) and the column blocks with the basis out of core (``scratch``: ``--scratch``, a
+temporary directory under bench-out/mem), side by side in one run.  Run by hand, never in the
+test suite:
 
     source scripts/mpi-env
     .venv/bin/python scripts/bench_softmodes_memory.py [--sizes 1024 4096 8192]
-        [--columns 64] [--out docs/bench-softmodes-memory.md]
+        [--columns 64] [--variants old "one block" columns scratch] [--tile 8192 1024]
+        [--out docs/bench-softmodes-memory.md]
+
+The first variant given is the reference of the ratios and of the agreement check.
 
 Packings: bench-out/mem/nN/member0000_phi_c.h5, made when missing with ``parjam pack --dim 3
 --n N --dphi 1e-8 --phic-method extrapolate --members 1 --seed 1`` (analysed with
@@ -34,7 +39,8 @@ OLD_COMMIT = "d5de07f"
 CHILD = r"""
 import json, resource, sys, time
 import numpy as np
-variant, path, columns, olddir = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]
+variant, path, columns, olddir, scratchdir = sys.argv[1:4] + sys.argv[4:6]
+columns = int(columns)
 from parjam import env, io
 PETSc = env.petsc()
 comm = PETSc.COMM_WORLD
@@ -52,6 +58,10 @@ stages = []  # peak so far when analyze reports the count, then the basis
 t0 = time.perf_counter()
 if variant == "old":
     res = sm.analyze(comm, cs, 0.1, 10, lambda msg: stages.append(maxrss()))
+elif variant == "scratch":
+    with sm.scratch_space(comm, scratchdir) as space:
+        res = sm.analyze(comm, cs, 0.1, 10, lambda msg: stages.append(maxrss()),
+                         columns=columns, scratch=space)
 else:
     res = sm.analyze(comm, cs, 0.1, 10, lambda msg: stages.append(maxrss()),
                      columns=None if variant == "one block" else columns)
@@ -64,7 +74,9 @@ print(json.dumps({"before_mb": before, "peak_mb": peak, "seconds": seconds,
                   "f": res.overlap[:, 1].tolist(), "f_nt": res.overlap[:, 2].tolist()}))
 """
 
-VARIANTS = ("old", "one block", "columns")
+VARIANTS = ("old", "one block", "columns", "scratch")
+IN_CORE_BASIS = {"old": None, "one block": None, "columns": 1.0, "scratch": 0.0}  # copies held
+#   by design (None: the measured ratio of the largest N, rounded)
 
 
 def packing(n, tile_from=None):
@@ -111,9 +123,9 @@ def old_module(tmp):
     return tmp
 
 
-def run(variant, path, columns, olddir):
+def run(variant, path, columns, olddir, scratchdir):
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    out = subprocess.run([PYTHON, "-c", CHILD, variant, path, str(columns), olddir],
+    out = subprocess.run([PYTHON, "-c", CHILD, variant, path, str(columns), olddir, scratchdir],
                          capture_output=True, text=True, env=env, cwd=ROOT)
     if out.returncode:
         sys.exit(f"{variant} on {path} failed:\n{out.stderr[-3000:]}")
@@ -125,9 +137,11 @@ def fit_power(x, y):
     return np.exp(a), b
 
 
-def page(rows, columns, sizes, made):
+def page(rows, columns, sizes, made, variants):
+    ref = variants[0]
     lines = [
-        "# Benchmark: peak memory of one soft-mode cut, single block against column blocks",
+        "# Benchmark: peak memory of one soft-mode cut, single block against column blocks, "
+        "in core and out of core",
         "",
         "Made by `scripts/bench_softmodes_memory.py` (run by hand; see its docstring). 3D "
         "packings (`parjam pack --dim 3 --n N --dphi 1e-8 --phic-method extrapolate --seed 1`), "
@@ -136,30 +150,35 @@ def page(rows, columns, sizes, made):
         "variational count) on 1 rank, each in a fresh process. `old` is main's module "
         f"(`git show {OLD_COMMIT}:parjam/softmodes.py`), one block of n_soft + 8 columns; "
         f"`one block` is the new package with `columns=None`; `columns` is the new package "
-        f"with `--columns {columns}` (the default). `before` is the resident set after reading "
+        f"with `--columns {columns}` (the default); `scratch` is `columns` with the basis out of "
+        "core (`--scratch`, files on the local disk). Variants run: "
+        + ", ".join(f"`{v}`" for v in variants) + f" (ratios against `{ref}`). "
+        "`before` is the resident set after reading "
         "the packing and cutting it, `peak` the peak resident set of the process (MB), "
         "`extra` = peak - before. Packings: "
         + "; ".join(f"N = {n}: {made[n]}" for n in sizes) + ".",
         "",
         "| N | N' | q | soft modes | variant | before MB | after count MB | after basis MB | "
-        "peak MB | extra MB | extra / old | seconds | one basis N'd n_soft 8 B (MB) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        f"peak MB | extra MB | extra / {ref} | seconds | seconds / {ref} | "
+        "one basis N'd n_soft 8 B (MB) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for n in sizes:
-        old = rows[(n, "old")]
-        for v in VARIANTS:
+        old = rows[(n, ref)]
+        for v in variants:
             r = rows[(n, v)]
             basis_mb = r["n_active"] * 3 * r["n_soft"] * 8 / 2**20
             extra, extra_old = r["peak_mb"] - r["before_mb"], old["peak_mb"] - old["before_mb"]
             lines.append(f"| {n} | {r['n_active']} | {r['q']} | {r['n_soft']} | {v} | "
                          f"{r['before_mb']:.0f} | {r['count_mb']:.0f} | {r['basis_mb']:.0f} | "
                          f"{r['peak_mb']:.0f} | {extra:.0f} | "
-                         f"{extra / extra_old:.2f} | {r['seconds']:.1f} | {basis_mb:.0f} |")
-    lines += ["", "Agreement with `old` (max |difference| over the extension spectrum e and "
+                         f"{extra / extra_old:.2f} | {r['seconds']:.1f} | "
+                         f"{r['seconds'] / old['seconds']:.2f} | {basis_mb:.0f} |")
+    lines += ["", f"Agreement with `{ref}` (max |difference| over the extension spectrum e and "
               "f(x) with and without the localised modes; counts equal):", ""]
     for n in sizes:
-        old = rows[(n, "old")]
-        for v in VARIANTS[1:]:
+        old = rows[(n, ref)]
+        for v in variants[1:]:
             r = rows[(n, v)]
             de = np.abs(np.subtract(r["e"], old["e"])).max()
             df = max(np.abs(np.subtract(r["f"], old["f"])).max(),
@@ -174,33 +193,33 @@ def page(rows, columns, sizes, made):
               "copies (N' d n_soft 8 B each) and the rest; each part is fitted as a power of N "
               "over the sizes measured and summed at N = 1e5.", ""]
     ns = np.array(sizes, float)
-    q = np.array([rows[(n, "columns")]["n_soft"] for n in sizes], float)
+    q = np.array([rows[(n, ref)]["n_soft"] for n in sizes], float)
     aq, bq = fit_power(ns, q)
     q5 = aq * 1e5**bq
     basis5 = 1e5 * 3 * q5 * 8 / 2**30
     lines.append(f"- Soft modes per cut: n_soft = {aq:.3g} N^{bq:.2f} (fit), {q5:.0f} at "
                  f"N = 1e5 (one basis copy N d n_soft 8 B = {basis5:.1f} GB).")
-    factor = np.array([rows[(n, "columns")]["count_mb"] - rows[(n, "columns")]["before_mb"]
+    factor = np.array([rows[(n, ref)]["count_mb"] - rows[(n, ref)]["before_mb"]
                        for n in sizes])
     af, bf = fit_power(ns, factor)
     factor5 = af * 1e5**bf / 1024
     lines.append(f"- MUMPS factor (count stage): {af:.3g} N^{bf:.2f} MB -> {factor5:.1f} GB at "
                  "N = 1e5 (docs/scaling.md's fill fit, 6.48 dof^1.46 entries, gives 5.1 GB).")
-    for v in VARIANTS:
+    for v in variants:
         basis = np.array([rows[(n, v)]["n_active"] * 3 * rows[(n, v)]["n_soft"] * 8 / 2**20
                           for n in sizes])
         extra = np.array([rows[(n, v)]["peak_mb"] - rows[(n, v)]["before_mb"] for n in sizes])
         copies = (extra - factor) / basis
         # the single block holds a fixed number of n x n_soft arrays at once (its measured
         # ratio); the column blocks hold one basis by design, the rest is fitted
-        c = float(np.round(copies[-1])) if v != "columns" else 1.0
+        c = float(np.round(copies[-1])) if IN_CORE_BASIS[v] is None else IN_CORE_BASIS[v]
         rest = np.maximum(extra - factor - c * basis, 1.0)
         ar, br = fit_power(ns, rest)
         total5 = 0.1 + factor5 + c * basis5 + ar * 1e5**br / 1024
         lines.append(f"- {v}: (extra - factor) / basis = "
                      + ", ".join(f"{x:.1f}" for x in copies)
                      + f" at N = {', '.join(map(str, sizes))}; {c:.0f} basis cop"
-                     f"{'y' if c == 1 else 'ies'} + factor + the rest ({ar:.3g} N^{br:.2f} MB) "
+                     f"{'y' if c == 1 else 'ies'} in memory + factor + the rest ({ar:.3g} N^{br:.2f} MB) "
                      f"+ 0.1 GB before: {total5:.1f} GB at N = 1e5 "
                      f"({'fits' if total5 < 16 else 'does not fit'} in 16 GB); with the factor "
                      f"of docs/scaling.md's fill fit (5.1 GB) "
@@ -212,27 +231,30 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[1024, 4096, 8192])
     p.add_argument("--columns", type=int, default=64)
+    p.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
     p.add_argument("--tile", type=int, nargs=2, action="append", default=[], metavar=("N", "M"),
                    help="make N by tiling the M packing 2 x 2 x 2 when N has no packing yet")
     p.add_argument("--out", default=os.path.join(ROOT, "docs", "bench-softmodes-memory.md"))
     p.add_argument("--json", default=os.path.join(ROOT, "bench-out", "mem", "results.json"))
     args = p.parse_args()
     rows, made = {}, {}
+    scratch = os.path.join(ROOT, "bench-out", "mem")  # the local disk, not a tmpfs
+    os.makedirs(scratch, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="parjam-oldsoft-") as tmp:
         olddir = old_module(tmp)
         tiles = dict(args.tile)
         for n in args.sizes:
             path, made[n] = packing(n, tiles.get(n))
-            for v in VARIANTS:
+            for v in args.variants:
                 t0 = time.time()
-                rows[(n, v)] = run(v, path, args.columns, olddir)
+                rows[(n, v)] = run(v, path, args.columns, olddir, scratch)
                 r = rows[(n, v)]
                 print(f"N = {n} {v}: peak {r['peak_mb']:.0f} MB (before {r['before_mb']:.0f}), "
                       f"{r['n_soft']} modes, {time.time() - t0:.0f} s", flush=True)
     os.makedirs(os.path.dirname(args.json), exist_ok=True)
     with open(args.json, "w") as fh:
         json.dump({f"{n}|{v}": r for (n, v), r in rows.items()}, fh)
-    lines = page(rows, args.columns, args.sizes, made)
+    lines = page(rows, args.columns, args.sizes, made, args.variants)
     with open(args.out, "w") as fh:
         fh.write("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -2,7 +2,8 @@
 --columns``): blocks of any width span the same null space as the single block (principal
 cosines 1), satisfy Eq. 3 and are orthonormal; counts, extensions, f(x) and trial energies agree
 to round-off, on 1 rank and on 2; f(x) does not depend on the basis of the null space; a bad
---columns is one line, exit 2, no file."""
+--columns is one line, exit 2, no file.  The out-of-core basis (``--scratch``) gives the in-core
+results to round-off and leaves no file behind; a bad scratch directory is one line, exit 2."""
 
 import os
 import tempfile
@@ -172,3 +173,112 @@ def test_each_column_block_starts_from_its_columns_of_one_matrix():
         parts = np.concatenate([sm.random_block(a, z, k, seed=4, first=first)
                                 for a, z in [(0, 3000), (3000, 3072), (3072, 7000)]])
         assert np.array_equal(parts, whole[:, first:first + k])
+
+
+def test_scratch_basis_reads_and_writes_like_an_array():
+    """The on-disk basis: blocks appended, row slices read and written, columns and column
+    blocks read back, exactly as the same array in memory."""
+    rng = np.random.default_rng(5)
+    ref = rng.standard_normal((37, 23))
+    path = tempfile.mkdtemp(prefix="parjam-scratch-test-")  # this rank's own
+    space = sm.ScratchSpace(path)
+    V = space.basis(37)
+    for a, z in [(0, 8), (8, 16), (16, 23)]:
+        V.append(ref[:, a:z])
+    assert V.shape == (37, 23)
+    assert np.array_equal(V[0:37], ref) and np.array_equal(V[5:11], ref[5:11])
+    assert np.array_equal(V[30:100], ref[30:]) and V[37:40].shape == (0, 23)
+    assert np.array_equal(V.columns(6, 19), ref[:, 6:19])
+    assert np.array_equal(V.columns(16, 64), ref[:, 16:])
+    assert np.array_equal(np.concatenate(list(V.column_blocks()), axis=1), ref)
+    U, _ = np.linalg.qr(rng.standard_normal((23, 23)))
+    V[3:20] = V[3:20] @ U
+    ref[3:20] = ref[3:20] @ U
+    assert np.array_equal(V[0:37], ref)
+    with pytest.raises(TypeError):
+        V[::2]
+    space.close()
+    assert not os.path.exists(path)
+
+
+def test_scratch_space_is_removed_on_error(comm):
+    with tempfile.TemporaryDirectory(prefix="parjam-scratch-test-") as top:
+        with pytest.raises(RuntimeError):
+            with sm.scratch_space(comm, top) as space:
+                space.basis(4).append(np.ones((4, 2)))
+                assert os.listdir(top) == [os.path.basename(space.path)]
+                assert len(os.listdir(space.path)) == 1
+                raise RuntimeError("boom")
+        assert os.listdir(top) == []
+
+
+@pytest.mark.parametrize("name", ISO)
+def test_out_of_core_analysis_equals_in_core(comm, name, tmpdir_all):
+    """--scratch: the basis on disk, read back in column blocks and row chunks, gives the
+    in-core result to round-off (same columns), on every rank count; its files are removed."""
+    cs = cut_system(name, 2)
+    a = sm.analyze(comm, cs, e0=0.1, columns=8)
+    with sm.scratch_space(comm, tmpdir_all) as space:
+        b = sm.analyze(comm, cs, e0=0.1, columns=8, scratch=space)
+        assert isinstance(b.V, sm.ScratchBasis) and b.V.shape == a.V.shape
+        assert os.path.getsize(b.V.path) == a.V.size * 8  # the whole basis is on disk
+        Vb = b.V[0:b.V.shape[0]]
+        mine = space.path
+    assert not os.path.exists(mine)
+    assert a.count == b.count and a.n_soft == b.n_soft
+    assert a.q_prime == b.q_prime and a.n_below == b.n_below
+    assert np.allclose(a.e, b.e, atol=1e-11)
+    assert np.allclose(a.overlap, b.overlap, atol=1e-11)
+    assert np.allclose(a.trial_energy, b.trial_energy, rtol=1e-8, equal_nan=True)
+    assert np.allclose(a.modulated_energy, b.modulated_energy, atol=1e-10)
+    assert b.gap == pytest.approx(a.gap, rel=1e-6)
+    assert b.eq3 < 1e-12 and b.ortho < 1e-12
+    # the extended bases agree up to signs within the (nondegenerate) extension spectrum
+    cos = np.abs(np.diag(sm.gram(comm, a.V, Vb)))
+    simple = np.diff(a.e, prepend=-1, append=2).clip(None, 1)
+    simple = np.minimum(simple[:-1], simple[1:]) > 1e-6
+    assert np.allclose(cos[simple], 1.0, atol=1e-8)
+    assert b.solver["out_of_core"] and not a.solver["out_of_core"]
+
+
+def test_cli_scratch_changes_no_result_and_leaves_nothing(comm, tmpdir_all):
+    import h5py
+
+    src = os.path.join(DATA, ISO[0])
+    scratch = os.path.join(tmpdir_all, "scratch")
+    if comm.getRank() == 0:
+        os.makedirs(scratch, exist_ok=True)
+    comm.tompi4py().Barrier()
+    outs = [os.path.join(tmpdir_all, f"ooc{i}.h5") for i in range(2)]
+    for extra, out in zip(([], ["--scratch", scratch]), outs):
+        assert cli.main(["softmodes", src, "--subdivide", "2", "--columns", "8", "--vectors",
+                         "-q", "--out", out] + extra) == 0
+    comm.tompi4py().Barrier()
+    assert os.listdir(scratch) == []
+    with h5py.File(outs[0], "r") as f, h5py.File(outs[1], "r") as g:
+        assert g["softmodes"].attrs["out_of_core"] and not f["softmodes"].attrs["out_of_core"]
+        for key in ("extension", "overlap", "extended_fraction"):
+            assert np.allclose(f["softmodes"][key][()], g["softmodes"][key][()], atol=1e-11)
+        P = [np.einsum("bia,bjc->iajc", h["softmodes/basis"][()], h["softmodes/basis"][()])
+             for h in (f, g)]  # the projector on the soft space, basis-independent
+        assert np.allclose(P[0], P[1], atol=1e-10)
+
+
+@pytest.mark.parametrize("bad,message", [
+    (["--scratch", "MISSING"], "not a directory"),
+    (["--scratch", "FILE"], "not a directory"),
+    (["--scratch", "DIR", "--basis", "krylov"], "--scratch needs --basis block"),
+])
+def test_bad_scratch_is_one_line_exit_2_and_no_file(comm, tmpdir_all, capsys, bad, message):
+    where = {"MISSING": os.path.join(tmpdir_all, "missing", "dir"),
+             "FILE": os.path.join(DATA, ISO[0]), "DIR": tmpdir_all}
+    out = os.path.join(tmpdir_all, "badscratch.h5")
+    capsys.readouterr()
+    code = cli.main(["softmodes", os.path.join(DATA, ISO[0]), "--cut", "x=0.5", "-q",
+                     "--out", out] + [where.get(x, x) for x in bad])
+    err = capsys.readouterr().err
+    assert code == 2 and not os.path.exists(out)
+    if comm.getRank() == 0:
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        assert len(lines) == 1 and lines[0].startswith("parjam: error:")
+        assert message in lines[0]

@@ -6,7 +6,7 @@ import os
 import numpy as np
 
 from parjam.errors import ParjamError
-from parjam.softmodes import COLUMNS_DEFAULT, COLUMNS_MAX
+from parjam.softmodes import COLUMNS_DEFAULT, COLUMNS_MAX, check_directory
 
 
 def add_parser(sub):
@@ -37,6 +37,11 @@ def add_parser(sub):
                    "one copy of the basis plus O(N K) work arrays instead of several N x q ones "
                    f"(1..{COLUMNS_MAX}; K above the null-space dimension is the single-block "
                    "method)")
+    p.add_argument("--scratch", metavar="DIR",
+                   help="block basis: keep the basis out of core, each rank's rows in a file "
+                   "of a temporary directory under DIR (removed at the end, also on error), "
+                   "read back in column blocks and row chunks; for cuts whose basis "
+                   "(N d n_soft 8 bytes) does not fit in memory (default: in memory)")
     p.add_argument("--vectors", action="store_true",
                    help="also store the basis (/softmodes/basis, modes x N x d)")
     p.add_argument("--allow-hyperstatic", action="store_true",
@@ -55,6 +60,10 @@ def validate(args):
         raise ParjamError(f"--subdivide must lie in [1, 1000], got {args.subdivide}")
     if not (1 <= args.columns <= COLUMNS_MAX):
         raise ParjamError(f"--columns must lie in [1, {COLUMNS_MAX}], got {args.columns}")
+    if args.scratch is not None:
+        if args.basis != "block":
+            raise ParjamError("--scratch needs --basis block")
+        check_directory(args.scratch)
     if not args.cut and args.subdivide is None:
         raise ParjamError("no cut given: use --cut AXIS=FRACTION (e.g. --cut x=0.5) and/or "
                           "--subdivide M")
@@ -92,15 +101,18 @@ def run(args):
     cs = sm.prepare(pack, planes_from(args, pack.d), args.allow_hyperstatic)
     progress(f"N' = {cs.n} non-rattlers, Nc = {len(cs.contacts)} ({cs.excess:+d} from "
              f"isostatic), q = {cs.q} cut contacts on {len(cs.planes)} plane(s)")
-    res = sm.analyze(comm, cs, args.e0, args.bins, progress, args.basis, args.columns)
-    res.solver["peak_rss_mb"] = peak_rss_mb(comm)
-    prov = io.provenance(comm.getSize(), {
-        "command": "softmodes", "input": os.path.abspath(args.packing),
-        "input_sha256": io.sha256(args.packing) if comm.getRank() == 0 else "",
-        "planes": [p.label for p in cs.planes], "e0": args.e0, "bins": args.bins,
-        "basis": args.basis, "columns": args.columns,
-        "allow_hyperstatic": bool(args.allow_hyperstatic)})
-    write(comm, args.out, res, args.vectors, prov)
+    with sm.scratch_space(comm, args.scratch) as scratch:  # the basis on disk lives in here
+        res = sm.analyze(comm, cs, args.e0, args.bins, progress, args.basis, args.columns,
+                         scratch)
+        res.solver["peak_rss_mb"] = peak_rss_mb(comm)
+        prov = io.provenance(comm.getSize(), {
+            "command": "softmodes", "input": os.path.abspath(args.packing),
+            "input_sha256": io.sha256(args.packing) if comm.getRank() == 0 else "",
+            "planes": [p.label for p in cs.planes], "e0": args.e0, "bins": args.bins,
+            "basis": args.basis, "columns": args.columns,
+            "out_of_core": args.scratch is not None,
+            "allow_hyperstatic": bool(args.allow_hyperstatic)})
+        write(comm, args.out, res, args.vectors, prov)
     if comm.getRank() == 0:
         print_summary(res, args.out)
     return 0

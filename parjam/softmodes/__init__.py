@@ -14,6 +14,7 @@ One module per step, every step distributed over the ranks of ``comm`` (rows spl
 - :mod:`.linalg` -- distributed dense algebra on row-split column blocks.
 - :mod:`.observables` -- modulation g, extension, extended subspace, f(x) (Sec. III, Appendix);
   :mod:`.trial` -- trial modes (Eq. rr) and omega_L (Eq. kkk).
+- :mod:`.scratch` -- the basis out of core (``--scratch``): a row-split array on disk.
 - :mod:`.analysis` -- the whole analysis; :mod:`.output` -- the HDF5 file.
 
 Dense references for tests live in :mod:`parjam.testing.softmodes_reference`.
@@ -37,11 +38,13 @@ from parjam.softmodes.observables import (E0_LADDER, coordinate_from_plane, exte
 from parjam.softmodes.operators import (relaxed_matrix, rigidity_matrix, stiffness_scale,
                                         translation_columns, translations)
 from parjam.softmodes.output import gather_columns, write
+from parjam.softmodes.scratch import ScratchBasis, ScratchSpace, check_directory, scratch_space
 from parjam.softmodes.trial import energies, omega_L2, trial_modes
 
 __all__ = [
     "AXES", "ActiveNetwork", "BASIS_METHODS", "COLUMNS_DEFAULT", "COLUMNS_MAX", "CutSystem",
-    "E0_LADDER", "NullBasis", "ParjamError", "Plane", "SoftModes", "active_network", "allmax",
+    "E0_LADDER", "NullBasis", "ParjamError", "Plane", "ScratchBasis", "ScratchSpace",
+    "SoftModes", "check_directory", "scratch_space", "active_network", "allmax",
     "allreduce", "analyze", "characterise", "coordinate_from_plane", "count_below", "crossing",
     "cut_masks", "energies", "eq3_residual", "expected_zero_modes", "extended_basis", "extended_fraction",
     "extension", "gap_above", "gather_columns", "gradient_bound", "gram", "localised_vectors",

@@ -82,10 +82,12 @@ class SoftModes:
 
 
 def analyze(comm, cs, e0=0.1, nbins=10, progress=None, basis="block",
-            columns=COLUMNS_DEFAULT):
+            columns=COLUMNS_DEFAULT, scratch=None):
     """Count, extract and characterise the soft modes of the cut system ``cs``; ``basis``
     chooses the null-space method and ``columns`` its column blocks (None: one block,
-    :func:`parjam.softmodes.nullspace.null_basis`)."""
+    :func:`parjam.softmodes.nullspace.null_basis`).  ``scratch``: a
+    :class:`parjam.softmodes.scratch.ScratchSpace` (from :func:`scratch_space`) keeps the basis
+    on disk there; the result's ``V`` is then a scratch basis, valid until the space closes."""
     PETSc = env.petsc()
     log = progress or (lambda msg: None)
     d = cs.d
@@ -108,7 +110,8 @@ def analyze(comm, cs, e0=0.1, nbins=10, progress=None, basis="block",
     t0 = time.perf_counter()
     stage = PETSc.Log.Stage("softmodes: null space")
     stage.push()
-    nb = null_basis(comm, M, d, n_soft, scale, basis, columns)
+    nb = null_basis(comm, M, d, n_soft, scale, basis, columns,
+                    store=None if scratch is None else scratch.basis)
     S = rigidity_matrix(comm, cs, cs.kept)
     eq3 = eq3_residual(comm, S, nb.V)
     S.destroy()
@@ -126,6 +129,7 @@ def analyze(comm, cs, e0=0.1, nbins=10, progress=None, basis="block",
     res.eq3 = eq3
     res.solver = {"eps_type": nb.solver, "iterations": nb.iterations, "scale_k": scale,
                   "columns": int(columns) if columns is not None else 0,
+                  "out_of_core": scratch is not None,
                   **{f"seconds_{k}": v for k, v in times.items()}}
     return res
 

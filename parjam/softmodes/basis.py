@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from parjam import env
+from parjam.softmodes.linalg import column_blocks
 
 BASIS_METHODS = ("block", "krylov")
 COLUMNS_DEFAULT = 64  # columns per block of the null-space method: BLAS-3 and MUMPS multi-RHS
@@ -19,7 +20,8 @@ COLUMNS_MAX = 100_000  # the bound of --columns: any value above the null-space 
 class NullBasis:
     """An orthonormal basis of the null space orthogonal to the translations.
 
-    ``V`` holds this rank's rows (particles lo..hi-1, d rows each) of the n_soft columns;
+    ``V`` holds this rank's rows (particles lo..hi-1, d rows each) of the n_soft columns (an
+    array, or a :class:`parjam.softmodes.scratch.ScratchBasis` on disk);
     ``rayleigh`` the eigenvalues of M for them (round-off), ``gap`` the next eigenvalue found.
     """
 
@@ -36,10 +38,11 @@ def eq3_residual(comm, S, V):
     """max over basis vectors and remaining contacts of |(dR_j - dR_i) . n_ij| (Eq. 3)."""
     x, y = S.createVecs()
     worst = 0.0
-    for b in range(V.shape[1]):
-        x.setArray(V[:, b])
-        S.mult(x, y)
-        worst = max(worst, y.norm(env.petsc().NormType.INFINITY))
+    for B in column_blocks(V):
+        for b in range(B.shape[1]):
+            x.setArray(B[:, b])
+            S.mult(x, y)
+            worst = max(worst, y.norm(env.petsc().NormType.INFINITY))
     x.destroy()
     y.destroy()
     return float(worst)

@@ -1,7 +1,11 @@
 """Distributed dense algebra on blocks of columns whose rows are split over the ranks (this
 rank's rows of a global n x k array): reductions, Gram matrices, projections, orthonormalisation
 (SVQB), Rayleigh-Ritz, and in-place rotations done in row chunks so that no second n x k array
-is ever made.  Every function is collective over ``comm``."""
+is ever made.  Every function is collective over ``comm``.
+
+A basis argument may be a numpy array or a :class:`parjam.softmodes.scratch.ScratchBasis` (on
+disk): the functions here touch it only through row slices ``V[a:z]``, ``V.shape`` and
+:func:`column_blocks`/:func:`columns_of`."""
 
 import numpy as np
 
@@ -28,9 +32,29 @@ def gram(comm, A, B=None):
     return allreduce(comm, A.T @ B)
 
 
+def column_blocks(U):
+    """The columns of U in blocks: U itself for an array, the stored blocks of a scratch basis
+    (read one at a time)."""
+    return U.column_blocks() if hasattr(U, "column_blocks") else (U,)
+
+
+def columns_of(U, c0, c1):
+    """U[:, c0:c1] (a copy for a scratch basis)."""
+    return U.columns(c0, c1) if hasattr(U, "columns") else U[:, c0:c1]
+
+
+def self_gram(comm, V, w=None, rows=ROW_CHUNK):
+    """V^T diag(w) V (w = 1 without weights) in row chunks (replicated)."""
+    A = np.zeros((V.shape[1], V.shape[1]))
+    for a in range(0, V.shape[0], rows):
+        R = V[a:a + rows]
+        A += R.T @ (R if w is None else w[a:a + rows, None] * R)
+    return allreduce(comm, A)
+
+
 def orthonormality_error(comm, V):
     k = V.shape[1]
-    return float(np.abs(gram(comm, V) - np.eye(k)).max()) if k else 0.0
+    return float(np.abs(self_gram(comm, V) - np.eye(k)).max()) if k else 0.0
 
 
 def random_block(lo, hi, k, seed, rows=3072, cols=64, first=0):
@@ -52,10 +76,17 @@ def random_block(lo, hi, k, seed, rows=3072, cols=64, first=0):
 
 def deflated(comm, X, *bases):
     """X with the columns of the orthonormal ``bases`` (mutually orthogonal) projected out,
-    twice (classical Gram-Schmidt with one re-orthogonalisation); temporaries are X-sized."""
+    twice (classical Gram-Schmidt with one re-orthogonalisation); temporaries are X-sized.  A
+    basis on disk goes first, block by block, each block read once and projected out twice
+    (block Gram-Schmidt: half the reads of two sweeps); the arrays follow."""
+    for U in bases:
+        if hasattr(U, "column_blocks"):
+            for B in U.column_blocks():
+                for _ in range(2):
+                    X = X - B @ gram(comm, B, X)
     for _ in range(2):
         for U in bases:
-            if U.shape[1]:
+            if not hasattr(U, "column_blocks") and U.shape[1]:
                 X = X - U @ gram(comm, U, X)
     return X
 

@@ -11,6 +11,10 @@ n x columns, so a cut needs one copy of the basis plus O(n columns) instead of t
 (n_soft + oversample) arrays of a single block.  ``columns`` >= n_soft + oversample is the
 single-block (unblocked) method; the null space, and every basis-independent result (counts,
 the projector, f(x)), agree to round-off (tests/test_softmodes_columns.py).
+
+Out of core (``store``, ``parjam softmodes --scratch DIR``): the accepted blocks are appended to
+a :class:`parjam.softmodes.scratch.ScratchBasis` instead of the n x n_soft array, and the
+deflation of the next blocks and the gap solve read it back one stored block at a time.
 """
 
 import numpy as np
@@ -19,18 +23,21 @@ from parjam import env, factor
 from parjam.errors import ParjamError
 from parjam.softmodes.basis import BASIS_METHODS, COLUMNS_DEFAULT, NullBasis
 from parjam.softmodes.krylov import null_basis_krylov
-from parjam.softmodes.linalg import (allreduce, deflated, normalised_columns, orthonormal,
+from parjam.softmodes.linalg import (allreduce, column_blocks, deflated, normalised_columns, orthonormal,
                                      random_block, rayleigh_ritz)
 from parjam.softmodes.operators import translation_columns
 
 
-def null_basis(comm, M, d, n_soft, scale, method="block", columns=COLUMNS_DEFAULT):
+def null_basis(comm, M, d, n_soft, scale, method="block", columns=COLUMNS_DEFAULT, store=None):
     """The n_soft null vectors of M orthogonal to the d translations (a :class:`NullBasis`), by
     block inverse iteration (``block``, the default; much faster for hundreds of modes, see
     docs/bench-softmodes.md) in blocks of ``columns`` (None: one block) or by SLEPc
-    Krylov-Schur shift-and-invert (``krylov``)."""
+    Krylov-Schur shift-and-invert (``krylov``).  ``store`` (block only): a callable n_loc ->
+    empty :class:`parjam.softmodes.scratch.ScratchBasis` that keeps the basis out of core."""
     if method == "block":
-        return null_basis_block(comm, M, d, n_soft, scale, columns=columns)
+        return null_basis_block(comm, M, d, n_soft, scale, columns=columns, store=store)
+    if store is not None:
+        raise ParjamError("an out-of-core basis (--scratch) needs the block method")
     if method == "krylov":
         return null_basis_krylov(comm, M, d, n_soft, scale)
     raise ParjamError(f"unknown basis method {method!r} (choose from {', '.join(BASIS_METHODS)})")
@@ -38,7 +45,7 @@ def null_basis(comm, M, d, n_soft, scale, method="block", columns=COLUMNS_DEFAUL
 
 def null_basis_block(comm, M, d, n_soft, scale, prefix="soft_", oversample=8, tau=1e-8,
                      tol=1e-12, passes=3, max_rounds=5, columns=COLUMNS_DEFAULT, block=512,
-                     seed=0):
+                     seed=0, store=None):
     """The n_soft null vectors of M orthogonal to the d translations, by block inverse
     (subspace) iteration with one MUMPS Cholesky factor of A = M + tau k I.
 
@@ -50,14 +57,14 @@ def null_basis_block(comm, M, d, n_soft, scale, prefix="soft_", oversample=8, ta
     columns.  The solves use MUMPS's multi-RHS path in blocks of ``block`` columns; the
     orthonormalisation and Rayleigh-Ritz are dense BLAS-3 on the local rows.
     ``-soft_ksp_*``/``-soft_pc_*`` options reach the factorisation, ``-soft_gap_eps_*`` the gap
-    solve.
+    solve.  ``store``: see :func:`null_basis`.
     """
     lo, hi = M.getOwnershipRange()
     k = min(n_soft + oversample, M.getSize()[0] - d)
     columns = k if columns is None else int(columns)
     ksp = factorised(comm, M, tau * scale, prefix)
     T = translation_columns(M, d)
-    V = np.empty((hi - lo, n_soft))
+    V = np.empty((hi - lo, n_soft)) if store is None else store(hi - lo)
     theta = np.empty(n_soft)
     found, iterations = 0, 0
     try:
@@ -66,9 +73,13 @@ def null_basis_block(comm, M, d, n_soft, scale, prefix="soft_", oversample=8, ta
             width = k - found if last else columns
             need = min(width, n_soft - found)
             X = random_block(lo, hi, width, seed, first=found)
-            Vb, tb, its = converged_block(comm, ksp, M, X, T, V[:, :found], need, scale,
+            Vb, tb, its = converged_block(comm, ksp, M, X, T,
+                                          V[:, :found] if store is None else V, need, scale,
                                           passes, max_rounds, tol, block)
-            V[:, found:found + need] = Vb[:, :need]
+            if store is None:
+                V[:, found:found + need] = Vb[:, :need]
+            else:
+                V.append(Vb[:, :need])
             theta[found:found + need] = tb[:need]
             found += need
             iterations = max(iterations, its)
@@ -180,7 +191,8 @@ class ProjectedInverse:
 
     def project(self, a):
         for U in self.bases:
-            a = a - U @ allreduce(self.comm, U.T @ a)
+            for B in column_blocks(U):
+                a = a - B @ allreduce(self.comm, B.T @ a)
         return a
 
     def mult(self, mat, x, y):

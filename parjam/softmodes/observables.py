@@ -1,12 +1,13 @@
 """What the soft modes look like (Wyart et al. 2005, Sec. III and the Appendix): the sine
 modulation g vanishing on the planes, the extension e = sum_i g_i^2 |dR_i|^2 of each mode, the
 extended subspace (e > e0), and the overlap function f(x) with and without the trivially
-localised modes.  Every function reads the basis in row chunks: no second n x n_soft array."""
+localised modes.  Every function reads the basis in row chunks (``V[a:z]``, an array or a
+scratch basis on disk): no second n x n_soft array."""
 
 import numpy as np
 
-from parjam.softmodes.linalg import (ROW_CHUNK, allreduce, gram, replicated_eigh, rotate_rows,
-                                     row_squares)
+from parjam.softmodes.linalg import (ROW_CHUNK, allreduce, replicated_eigh, rotate_rows,
+                                     row_squares, self_gram)
 
 E0_LADDER = (0.05, 0.1, 0.2, 0.3, 0.4)
 
@@ -60,12 +61,7 @@ def extension(comm, V, g2):
 
 def projected_g(comm, V, g2):
     """V^T G V (G = g_i^2 on particle i), in row chunks (replicated)."""
-    w = row_weights(V, g2)
-    A = np.zeros((V.shape[1], V.shape[1]))
-    for a in range(0, V.shape[0], ROW_CHUNK):
-        rows = V[a:a + ROW_CHUNK]
-        A += rows.T @ (w[a:a + ROW_CHUNK, None] * rows)
-    return allreduce(comm, A)
+    return self_gram(comm, V, row_weights(V, g2))
 
 
 def extended_basis(comm, V, g2, inplace=False):
@@ -142,10 +138,11 @@ def localised_complement(comm, cs, V, lo, hi):
     for k, (p, w) in enumerate(loc):
         if lo <= p < hi:
             ZtV[k] = w @ V[(p - lo) * d:(p - lo + 1) * d]
-    for a in range(d):
-        ZtV[nl + a] = t * V[a::d].sum(axis=0)
+    step = d * max(1, ROW_CHUNK // d)  # whole particles per chunk
+    for a in range(0, V.shape[0], step):
+        ZtV[nl:] += t * V[a:a + step].reshape(-1, d, V.shape[1]).sum(axis=0)
     C = Rinv.T @ allreduce(comm, ZtV)
-    lam, U = replicated_eigh(comm, gram(comm, V) - C.T @ C)  # Gram matrix of V - Q C
+    lam, U = replicated_eigh(comm, self_gram(comm, V) - C.T @ C)  # Gram matrix of V - Q C
     keep = lam > 0.5
     mine = [(k, p - lo, w) for k, (p, w) in enumerate(loc) if lo <= p < hi]
 

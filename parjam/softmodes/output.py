@@ -5,11 +5,13 @@ import numpy as np
 
 from parjam import io
 from parjam.softmodes.cut import AXES
+from parjam.softmodes.linalg import columns_of
 
 
 def gather_columns(comm, V, cols, root=0):
     """Rows of V[:, cols] from every rank, stacked on ``root`` (None elsewhere)."""
-    parts = comm.tompi4py().gather(np.ascontiguousarray(V[:, cols]), root=root)
+    parts = comm.tompi4py().gather(np.ascontiguousarray(columns_of(V, cols.start, cols.stop)),
+                                   root=root)
     return np.concatenate(parts, axis=0) if parts is not None else None
 
 

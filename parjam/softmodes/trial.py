@@ -3,7 +3,7 @@ their energies against the uncut network, and the bound omega_L^2 of Eq. (kkk)."
 
 import numpy as np
 
-from parjam.softmodes.linalg import allreduce, gram
+from parjam.softmodes.linalg import allreduce, column_blocks, gram
 
 
 def omega_L2(e0, kappa, z_max, grad2):
@@ -26,13 +26,16 @@ def energies(comm, M, T, projected=False, weight=None):
     x, y = M.createVecs()
     MT = np.empty_like(T) if projected else None
     E = np.empty(T.shape[1])
-    for b in range(T.shape[1]):
-        t = T[:, b] if weight is None else weight * T[:, b]
-        x.setArray(t)
-        M.mult(x, y)
-        E[b] = t @ y.getArray()
-        if projected:
-            MT[:, b] = y.getArray()
+    b = 0
+    for B in column_blocks(T):  # T itself, or the stored blocks of a scratch basis
+        for c in range(B.shape[1]):
+            t = B[:, c] if weight is None else weight * B[:, c]
+            x.setArray(t)
+            M.mult(x, y)
+            E[b] = t @ y.getArray()
+            if projected:
+                MT[:, b] = y.getArray()
+            b += 1
     x.destroy()
     y.destroy()
     E = allreduce(comm, E)
