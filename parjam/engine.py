@@ -63,10 +63,8 @@ class SlabEngine:
         self.alpha, self.eps, self.skin = alpha, eps, float(skin)
         dmax = float(np.max(diam)) if len(diam) else 0.0
         self.cut = self.comm.allreduce(dmax, op=_mpi_max()) + self.skin
-        self.n = self.comm.allreduce(len(x))
         self.n_rebuilds = self.n_migrated = 0
         self.sums = np.zeros(kernels.N_SUMS)
-        self._sums = None
         v = np.zeros_like(x) if v is None else np.array(v, dtype=np.float64)
         self.domain = SlabDomain.balanced(self.comm, self.L, x)
         ids = np.asarray(ids, dtype=np.int64)
@@ -163,11 +161,12 @@ class SlabEngine:
 
     # --- forces and the fused FIRE step ---------------------------------------------------------
     def start(self):
-        """Forces at the current positions and the global FireSums (collective)."""
+        """Forces at the current positions and the global FireSums (collective).  Positions
+        moved from outside (``xu``) need a ``rebuild()`` first."""
         return self._forces()
 
     def _forces(self):
-        if not self.fresh:  # the positions were moved from outside since the last refresh
+        if not self.fresh:
             self._refresh()
         self._call(kernels.FIRE_FORCES, 0.0, False, 0.0, 1.0, 0.0)
         return self._reduce()
