@@ -197,10 +197,23 @@ def build(comm, x, diam, ids, L, alpha=2.0, eps=1.0, coincide=1e-9):
     keep = (number[allc.i] >= 0) & (number[allc.j] >= 0)
     act = allc.subset(keep)
     act = Contacts(number[act.i], number[act.j], act.rij, act.r, act.sigma)
-    volume = float(np.prod(dom.L))
+    sums = network_sums(comm, allc, act, x, diam, rattler, alpha, eps, float(np.prod(dom.L)))
+    return ActiveNetwork(
+        comm=comm, d=d, n=n, n_active=comm.allreduce(hi - lo), n_contacts=sums["nc"], lo=lo,
+        hi=hi, L=dom.L, alpha=float(alpha), eps=float(eps), phi=sums["phi"], ids=ids[~rattler],
+        owned_ids=ids, rattler=rattler, contacts=act, n_all_contacts=sums["n_all"],
+        energy=sums["energy"], stress=sums["stress"], max_force=sums["max_force"],
+        mean_force=sums["mean_force"])
+
+
+def network_sums(comm, allc, act, x, diam, rattler, alpha, eps, volume):
+    """The global numbers of network.analyze from this rank's half-edges (each contact counted
+    with weight 1/2) and owned particles, by allreduce: Nc, phi, energy, stress
+    sigma_ab = -(1/V) sum V'(r) r_a r_b / r, the largest residual force on a non-rattler and the
+    mean contact force."""
+    d = x.shape[1]
     dv = potential.dV(allc.r, allc.sigma, alpha, eps)
-    w = -(dv / allc.r)
-    stress = 0.5 * np.einsum("k,ka,kb->ab", w, allc.rij, allc.rij) / volume
+    stress = 0.5 * np.einsum("k,ka,kb->ab", -(dv / allc.r), allc.rij, allc.rij) / volume
     force = np.zeros_like(x)  # on each owned particle, from all its contacts
     for a in range(d):
         force[:, a] = np.bincount(allc.i, weights=(dv / allc.r) * allc.rij[:, a],
@@ -208,17 +221,13 @@ def build(comm, x, diam, ids, L, alpha=2.0, eps=1.0, coincide=1e-9):
     fnorm = np.sqrt(np.einsum("ij,ij->i", force, force))[~rattler]
     fmag = np.abs(potential.dV(act.r, act.sigma, alpha, eps))
     sums = comm.allreduce(np.array([
-        len(act), 0.5 * potential.energy(allc.r, allc.sigma, alpha, eps).sum(), 0.5 * fmag.sum(),
-        sphere_volume(diam, d).sum()]))
-    stress = comm.allreduce(stress)
+        len(act), len(allc), 0.5 * potential.energy(allc.r, allc.sigma, alpha, eps).sum(),
+        0.5 * fmag.sum(), sphere_volume(diam, d).sum()]))
     nc = int(round(sums[0])) // 2
-    return ActiveNetwork(
-        comm=comm, d=d, n=n, n_active=comm.allreduce(hi - lo), n_contacts=nc, lo=lo, hi=hi,
-        L=dom.L, alpha=float(alpha), eps=float(eps), phi=float(sums[3] / volume),
-        ids=ids[~rattler], owned_ids=ids, rattler=rattler, contacts=act,
-        n_all_contacts=comm.allreduce(len(allc)) // 2, energy=float(sums[1]), stress=stress,
-        max_force=comm.allreduce(float(fnorm.max()) if len(fnorm) else 0.0, op=max_op()),
-        mean_force=float(sums[2] / nc) if nc else 0.0)
+    return {"nc": nc, "n_all": int(round(sums[1])) // 2, "energy": float(sums[2]),
+            "stress": comm.allreduce(stress), "phi": float(sums[4] / volume),
+            "max_force": comm.allreduce(float(fnorm.max()) if len(fnorm) else 0.0, op=max_op()),
+            "mean_force": float(sums[3] / nc) if nc else 0.0}
 
 
 def max_op():
