@@ -152,10 +152,16 @@ def test_pack_interrupted_at_the_kth_checkpoint_resumes_bitwise(world, shared_tm
     resumed = evaluations["n"] - first
     total = int(_attr(os.path.join(reference, "member0000_dphi1.0e-02.h5"),
                       "force_evaluations"))
-    assert 0 < resumed < total
     serial = world.getSize() == 1
     if serial:  # the same trajectory: no evaluation lost or repeated
+        assert 0 < resumed < total
         assert first + resumed - total in (0, 1)
+    else:
+        # Newton's parallel factorisations are not bitwise reproducible (see _assert_same), so
+        # the minimisations after the first Newton may take a few steps more or fewer than the
+        # uninterrupted run's: an interruption in the first quench (k = 1) saves ~100 of
+        # ~20,000 evaluations, less than that spread (measured: +33 over the reference)
+        assert 0 < resumed and abs(first + resumed - total) <= 0.02 * total
     _assert_same(out, reference, exact=serial)
     assert not os.path.exists(os.path.join(out, checkpoint.DIRECTORY))
 
