@@ -7,10 +7,11 @@ by id).  A neighbour rebuild hands particles that left a slab to their new owner
 (``SlabDomain.migrate``; the slab bounds move to the count quantiles again when the counts
 drift by more than REBALANCE), plans the ghosts within cutoff = max diameter + skin of the slab
 (``SlabDomain.halo``, their diameters pulled once) and lists the pairs of owned particles and
-ghosts in compiled code (``kernels.slab_pairs``; on one rank, where all ghosts are
-periodic images, the fully periodic cell search ``kernels.cell_pair_lists``, with no halo).  A FIRE step then is: the compiled update of
-the owned particles, ONE ghost refresh (``Halo.pull`` of the positions), the compiled forces
-and partial sums, ONE allreduce of the seven sums (``parjam_fire_step``).
+ghosts in compiled code (``kernels.slab_pairs``; on one rank, where all ghosts are periodic
+images, the fully periodic cell search ``kernels.cell_pair_lists``, with no halo).  A FIRE
+step then is: the compiled update of the owned particles, ONE ghost refresh (``Halo.pull`` of
+the positions), the compiled forces and partial sums, ONE allreduce of the seven sums
+(``parjam_fire_step``).
 
 Ghost pairs are computed on both sides: a pair of particles on two ranks is listed by both, and
 each adds the force to its own particle only (no second exchange to push ghost forces back).
