@@ -215,7 +215,10 @@ def write(a, step, weak):
              f"{a.steps} timed steps, fastest of {a.repeat} x {a.rounds} alternating old/new "
              "runs)", "",
              "ns per particle per step (N total; on 2 ranks the slower rank's CPU time, so "
-             "ideal scaling halves it).", "",
+             "ideal scaling halves it).  On 2 ranks at N = 4096 a step is ~0.5 ms of compute "
+             "between collectives that wait for the other rank to be scheduled on this shared "
+             "machine: both engines are latency-bound there and the ratio swings from run to "
+             "run.", "",
              "| N | ranks | old FIRE step | new FIRE step | new / old | pair kernel alone |",
              "|---|---|---|---|---|---|"]
     for (n, ranks, name), r in sorted(step.items()):
