@@ -201,6 +201,24 @@ int parjam_fire_step(int mode, int64_t nown, int d, double *x, double *v, double
 /* SHA-256 of this file when it was compiled (parjam.kernels checks it against the source) */
 const char *parjam_src_sha = PARJAM_SRC_SHA;
 
+/* Counting sort of n points by cell: ``order`` lists them cell by cell (ascending index within
+ * a cell), cell c's range in it is start[c] .. start[c + 1] (start holds ncells + 1). */
+static void bucket_by_cell(int64_t n, int64_t ncells, const int64_t *cellof, int64_t *start,
+                           int64_t *order)
+{
+    for (int64_t c = 0; c <= ncells; c++)
+        start[c] = 0;
+    for (int64_t k = 0; k < n; k++)
+        start[cellof[k] + 1]++;
+    for (int64_t c = 0; c < ncells; c++)
+        start[c + 1] += start[c];
+    for (int64_t k = 0; k < n; k++)
+        order[start[cellof[k]]++] = k;
+    for (int64_t c = ncells; c > 0; c--)
+        start[c] = start[c - 1];
+    start[0] = 0;
+}
+
 /* Neighbour search by cells (kernels.cell_pairs): the pairs (i, j) with |x_j - x_i| <= cutoff
  * (minimum image) and i or j in [lo, hi), each once, as two index arrays of capacity ``cap``;
  * in (i, j) order, *sorted = 1, unless some pair's first particle is not owned (a rank's ghost),
@@ -216,8 +234,6 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
     int64_t ncells = 1;
     for (int a = 0; a < d; a++)
         ncells *= nc;
-    for (int64_t c = 0; c <= ncells; c++)
-        start[c] = 0;
     const double scale = nc / L;
     for (int64_t k = 0; k < n; k++) {
         int64_t c = 0;
@@ -230,15 +246,8 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
             c = c * nc + m;
         }
         cellof[k] = c;
-        start[c + 1]++;
     }
-    for (int64_t c = 0; c < ncells; c++)
-        start[c + 1] += start[c];
-    for (int64_t k = 0; k < n; k++)
-        order[start[cellof[k]]++] = k;
-    for (int64_t c = ncells; c > 0; c--)
-        start[c] = start[c - 1];
-    start[0] = 0;
+    bucket_by_cell(n, ncells, cellof, start, order);
     for (int64_t q = 0; q < n; q++)
         for (int a = 0; a < d; a++)
             sp[q * d + a] = pos[order[q] * d + a];
@@ -419,8 +428,6 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
     int64_t ncells = nx;
     for (int a = 1; a < d; a++)
         ncells *= nc;
-    for (int64_t c = 0; c <= ncells; c++)
-        start[c] = 0;
     const double scale = nc / L;
     for (int64_t k = 0; k < n; k++) {
         int64_t m = (int64_t)((pos[k * d] - x0min) / w0);
@@ -430,15 +437,8 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
             c = c * nc + (m < 0 ? 0 : (m >= nc ? nc - 1 : m));
         }
         cellof[k] = c;
-        start[c + 1]++;
     }
-    for (int64_t c = 0; c < ncells; c++)
-        start[c + 1] += start[c];
-    for (int64_t k = 0; k < n; k++)
-        order[start[cellof[k]]++] = k;
-    for (int64_t c = ncells; c > 0; c--)
-        start[c] = start[c - 1];
-    start[0] = 0;
+    bucket_by_cell(n, ncells, cellof, start, order);
     /* positions, and the global id (times 2, plus 1 for a non-owned point), in cell order, so
      * that a cell's candidates are read contiguously */
     for (int64_t q = 0; q < n; q++) {

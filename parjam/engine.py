@@ -7,9 +7,11 @@ by id).  A neighbour rebuild hands particles that left a slab to their new owner
 (``SlabDomain.migrate``; the slab bounds move to the count quantiles again when the counts
 drift by more than REBALANCE), plans the ghosts within cutoff = max diameter + skin of the slab
 (``SlabDomain.halo``, their diameters pulled once) and lists the pairs of owned particles and
-ghosts in compiled code (``kernels.slab_pairs``).  A FIRE step then is: the compiled update of
-the owned particles, ONE ghost refresh (``Halo.pull`` of the positions), the compiled forces
-and partial sums, ONE allreduce of the seven sums (``parjam_fire_step``).
+ghosts in compiled code (``kernels.slab_pairs``; on one rank, where all ghosts are periodic
+images, the fully periodic cell search ``kernels.cell_pair_lists``, with no halo).  A FIRE
+step then is: the compiled update of the owned particles, ONE ghost refresh (``Halo.pull`` of
+the positions), the compiled forces and partial sums, ONE allreduce of the seven sums
+(``parjam_fire_step``).
 
 Ghost pairs are computed on both sides: a pair of particles on two ranks is listed by both, and
 each adds the force to its own particle only (no second exchange to push ghost forces back).
@@ -111,6 +113,8 @@ class SlabEngine:
         cap = int(1.25 * len(self.pi)) + 1024 if getattr(self, "pi", None) is not None else None
         self.kernel = self.pi = self.pj = self.f = self.ref = self.pdiam = None
         xw = self.domain.wrap(self.xu)
+        if self.size == 1 and self._plan_periodic(xw, cap):
+            return
         halo = self.domain.halo(xw, self.ids, self.cut)
         # the ghosts' positions and diameters in one exchange
         with event(HALO) if self.size > 1 else contextlib.nullcontext():  # one rank: a copy
@@ -133,16 +137,34 @@ class SlabEngine:
                                               kinds, low, cap)
         self.halo, self.foreign = halo, foreign
         self.all_foreign = len(foreign) == halo.n
-        self.pos = np.empty((n_own + len(foreign), d))  # [owned; ghosts of other ranks]
+        self._arrays(g_xu[foreign], g_diam[foreign])
+
+    def _plan_periodic(self, xw, cap):
+        """One rank: every ghost is an image of an owned particle, so the fully periodic cell
+        search (kernels.cell_pair_lists, the serial kernel's) lists the pairs, rows = ids
+        (sorted), in (i, j) order, with no halo.  False when that search does not apply (fewer
+        than 3 cells a side; no compiled library): the slab search serves then."""
+        got = kernels.cell_pair_lists(xw, self.L, self.cut, 0, len(self.ids), cap)
+        if got is None:
+            return False
+        self.pi, self.pj = got
+        self.halo, self.foreign, self.all_foreign = None, np.empty(0, dtype=np.int64), True
+        self._arrays(np.empty((0, self.d)), np.empty(0))
+        return True
+
+    def _arrays(self, g_pos, g_diam):
+        """The force arrays for the owned rows and the ghosts of other ranks, and the kernel."""
+        n_own, d = len(self.ids), self.d
+        self.pos = np.empty((n_own + len(g_pos), d))  # [owned; ghosts of other ranks]
         self.pos[:n_own] = self.xu
         self.xu = self.pos[:n_own]  # the owned positions are a view of the force array
-        self.pdiam = np.concatenate([self.diam, g_diam[foreign]])
+        self.pdiam = np.concatenate([self.diam, g_diam])
         self.ref = self.xu.copy()
         self.f = np.zeros((n_own, d))
         self.v = np.ascontiguousarray(self.v)
         self.kernel = kernels.FireKernel(self.xu, self.v, self.f, self.ref, self.pi, self.pj,
                                          self.pos, self.pdiam, self.sums)
-        self.pos[n_own:] = g_xu[foreign]
+        self.pos[n_own:] = g_pos
         self.fresh = True
 
     def _refresh(self):

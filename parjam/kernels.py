@@ -268,6 +268,13 @@ def cell_pairs(pos, L, cutoff, lo, hi):
     sorted by (i, j), from a cell search in compiled code over positions ``pos`` folded
     into [0, L) (all n, (n, d)).  None when there is no compiled library or the box holds fewer
     than 3 cells of edge >= cutoff per direction (then parjam.system's k-d tree serves)."""
+    got = cell_pair_lists(pos, L, cutoff, lo, hi)
+    return None if got is None else np.stack(got, axis=1)
+
+
+def cell_pair_lists(pos, L, cutoff, lo, hi, cap=None):
+    """cell_pairs as two arrays (pi, pj) (the engine's form on one rank); ``cap``: the expected
+    number of pairs (more are found by a second pass)."""
     lib = library()
     n, d = pos.shape
     nc = int(L // cutoff) if cutoff > 0 else 0
@@ -277,7 +284,7 @@ def cell_pairs(pos, L, cutoff, lo, hi):
     start = np.empty(nc ** d + 1, dtype=np.int64)
     order, cellof = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
     sp = np.empty((n, d))
-    cap = 40 * max(hi - lo, 1) + 1024
+    cap = 40 * max(hi - lo, 1) + 1024 if cap is None else int(cap)
     ordered = ctypes.c_int(0)
     while True:
         pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
@@ -287,9 +294,11 @@ def cell_pairs(pos, L, cutoff, lo, hi):
             break
         cap = -got
     if ordered.value:  # one rank (or no ghost first in a pair): already in (i, j) order
-        return np.stack([pi[:got], pj[:got]], axis=1)
+        if got < 0.7 * cap:  # a loose first guess: no idle capacity kept
+            return pi[:got].copy(), pj[:got].copy()
+        return pi[:got], pj[:got]
     key = np.sort(pi[:got] * n + pj[:got])
-    return np.stack([key // n, key % n], axis=1)
+    return key // n, key % n
 
 
 def slab_pairs(pos, L, cutoff, row, gid, kind, low, cap=None):
