@@ -29,32 +29,8 @@ import numpy as np
 
 from parjam import hessian, potential
 from parjam.domain import SlabDomain, as_mpi
-from parjam.network import NetworkNumbers
+from parjam.network import Contacts, NetworkNumbers
 from parjam.system import pair_separation, sphere_volume
-
-
-@dataclass
-class Contacts:
-    """Local half-edges: i owned, j owned or ghost, both given by their *global active numbers*
-    (or, inside ``build``, rows of [owned; ghosts]); rij = x_j - x_i."""
-
-    i: np.ndarray
-    j: np.ndarray
-    rij: np.ndarray
-    r: np.ndarray
-    sigma: np.ndarray
-
-    def __len__(self):
-        return len(self.i)
-
-    @property
-    def unit(self):
-        """Unit vectors n = r_ij / r."""
-        return self.rij / self.r[:, None]
-
-    def subset(self, mask):
-        return Contacts(self.i[mask], self.j[mask], self.rij[mask], self.r[mask],
-                        self.sigma[mask])
 
 
 @dataclass

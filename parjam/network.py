@@ -22,7 +22,9 @@ from parjam.system import neighbour_pairs, pair_geometry
 
 @dataclass
 class Contacts:
-    """All overlapping pairs i < j with their geometry (rattlers included)."""
+    """Contacts with their geometry, rij = x_j - x_i.  Serially (``find_contacts``): all
+    overlapping pairs i < j, rattlers included.  In parjam.active: a rank's half-edges, i owned,
+    j owned or ghost, both given by their global active numbers."""
 
     i: np.ndarray
     j: np.ndarray
@@ -32,6 +34,11 @@ class Contacts:
 
     def __len__(self):
         return len(self.i)
+
+    @property
+    def unit(self):
+        """Unit vectors n = r_ij / r."""
+        return self.rij / self.r[:, None]
 
     def subset(self, mask):
         return Contacts(self.i[mask], self.j[mask], self.rij[mask], self.r[mask], self.sigma[mask])
