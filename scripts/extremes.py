@@ -222,17 +222,25 @@ def census_files(paths):
             state = state.decode() if isinstance(state, bytes) else str(state)
             rows.setdefault(state, []).append({k: io.observable(f, k) for k in (
                 "excess", "stable", "negative_curvatures_found", "excess_found", "escapes",
-                "max_force_rel", "pressure", "N_active") if k in o} | {
+                "cycles", "dphi_virial_ok", "max_force_rel", "pressure", "N_active") if k in o} | {
                     "member": int(par["member"]), "seconds": float(par["seconds"])})
     print("| state | members | negative curvature found | Nc < Nc_iso found | unstable after "
-          "| Nc - Nc_iso after (min..max) | escapes (total) |")
-    print("|---|---|---|---|---|---|---|")
+          "| Nc - Nc_iso after (min..max) | escapes (total) | compression cycles (total) "
+          "| virial dphi off its label |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for state in sorted(rows, key=lambda s: (s != "phi_c", float(s[4:]) if s != "phi_c" else 0)):
         ss = rows[state]
         print(f"| {state} | {len(ss)} | {sum(s['negative_curvatures_found'] > 0 for s in ss)} | "
               f"{sum(s['excess_found'] < 0 for s in ss)} | {sum(not s['stable'] for s in ss)} | "
               f"{min(s['excess'] for s in ss)}..{max(s['excess'] for s in ss)} | "
-              f"{sum(s['escapes'] for s in ss)} |")
+              f"{sum(s['escapes'] for s in ss)} | {sum(s.get('cycles', 0) for s in ss)} | "
+              f"{sum(not s.get('dphi_virial_ok', 1) for s in ss)} |")
+    seconds = {}
+    for ss in rows.values():
+        for r in ss:
+            seconds[r["member"]] = max(seconds.get(r["member"], 0.0), r["seconds"])
+    print(f"\nmembers {sorted(seconds)}; seconds per member (the largest 'seconds' of its "
+          f"files): " + ", ".join(f"{seconds[m]:.0f}" for m in sorted(seconds)))
     # Eq. (22): dz = C0 p^b over dphi = 1e-5 .. 1e-1, least squares in log-log of the ensemble
     # means, dz = 2 (Nc - Nc_iso) / N' (docs/reproduction.md conventions)
     fit = [st for st in rows if st != "phi_c" and 1e-5 <= float(st[4:]) <= 1e-1]
