@@ -54,15 +54,25 @@ def unit_blocks(rij, r, part):
     raise ValueError(f"part must be 'par' or 'perp', got {part!r}")
 
 
+TRANS_BLOCK_VALUES = 1 << 21  # doubles of one block of relative displacements (16 MB)
+
+
 def transverse_longitudinal(vectors, i, j, rij, r):
     """The paper's Fig. "trans" sums for each mode (unit-normalised vectors):
     eps_perp = 1/2 sum_<ij> [(dR_j - dR_i)_perp]^2, eps_par = 1/2 sum_<ij> [(dR_j - dR_i).n_ij]^2."""
     v = np.asarray(vectors)
     n = rij / r[:, None]
-    rel = v[:, j, :] - v[:, i, :]
-    par = np.einsum("kca,ca->kc", rel, n)
-    total = np.einsum("kca,kca->kc", rel, rel)
-    return 0.5 * (total - par**2).sum(axis=1), 0.5 * (par**2).sum(axis=1)
+    perp, par = np.empty(len(v)), np.empty(len(v))
+    # a block of modes at a time: the relative displacements of all modes at once are
+    # k x Nc x d (250 MB for the 3000 modes of N = 1024, allocated twice), a block ~16 MB
+    step = max(1, TRANS_BLOCK_VALUES // max(1, len(i) * v.shape[-1]))
+    for a in range(0, len(v), step):
+        rel = v[a:a + step, j, :] - v[a:a + step, i, :]
+        p = np.einsum("kca,ca->kc", rel, n)
+        total = np.einsum("kca,kca->kc", rel, rel)
+        perp[a:a + step] = 0.5 * (total - p**2).sum(axis=1)
+        par[a:a + step] = 0.5 * (p**2).sum(axis=1)
+    return perp, par
 
 
 # --- density of states ---------------------------------------------------------------------------
