@@ -11,7 +11,9 @@ def add_parser(sub):
         description="Remove rattlers, assemble the dynamical matrix D of the non-rattlers, solve "
         "D u = Xi for the force fields Xi of the d(d+1)/2 affine strains (PETSc KSP: CG with the "
         "translations as null space, preconditioned by a Cholesky factorisation of D + tau I, "
-        "MUMPS when available; options -moduli_ksp_* -moduli_pc_*), and report the bulk modulus "
+        "MUMPS when available; options -moduli_ksp_* -moduli_pc_*; with -moduli_pc_type gamg "
+        "on several ranks, the global -matptap_via allatonce builds GAMG's coarse operators with "
+        "about half the memory of PETSc's default), and report the bulk modulus "
         "B = -V dp/dV, the isotropic shear modulus G, the smallest shear modulus over all "
         "directions (negative: unstable to some shear in the fixed box) and the residuals.")
     p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
