@@ -30,18 +30,18 @@ NEW = os.path.join(ROOT, ".venv", "bin", "parjam")
 PY = os.path.join(ROOT, ".venv", "bin", "python")
 
 COMMANDS = {
-    "analyze": lambda f, out: ["analyze", f],
-    "dos --method kpm": lambda f, out: ["dos", "--method", "kpm", f, "--moments", "64",
+    "analyze": lambda f, out, p: ["analyze", f],
+    "dos --method kpm": lambda f, out, p: ["dos", "--method", "kpm", f, "--moments", "64",
                                         "--probes", "2", "--out", out],
-    "moduli (GAMG)": lambda f, out: ["moduli", f, "-moduli_pc_type", "gamg",
+    "moduli (GAMG)": lambda f, out, p: ["moduli", f, "-moduli_pc_type", "gamg",
                                      "-moduli_ksp_rtol", "1e-4", "-moduli_ksp_max_it", "400"],
     # GAMG's Galerkin coarse operators A_c = P^T A P with PETSc's memory-lean MPIAIJ PtAP; the
     # option has no per-solver prefix in PETSc 3.18 (GAMG's product matrices carry none), so it
-    # is the user's global command-line option, never set by parjam
-    "moduli (GAMG, allatonce)": lambda f, out: ["moduli", f, "-moduli_pc_type", "gamg",
-                                                "-moduli_ksp_rtol", "1e-4",
-                                                "-moduli_ksp_max_it", "400",
-                                                "-matptap_via", "allatonce"],
+    # is the user's global command-line option, never set by parjam; one rank's (sequential) PtAP
+    # has no allatonce and runs as the row above
+    "moduli (GAMG, allatonce)": lambda f, out, p: (
+        ["moduli", f, "-moduli_pc_type", "gamg", "-moduli_ksp_rtol", "1e-4",
+         "-moduli_ksp_max_it", "400"] + (["-matptap_via", "allatonce"] if p > 1 else [])),
 }
 
 
@@ -93,7 +93,7 @@ def main():
                 dest = os.path.join(work, f"{label}_{ranks}_{name.split()[0]}.h5")
                 if os.path.exists(dest):
                     os.remove(dest)
-                out[label] = peak_rss(exe, COMMANDS[name](big, dest), ranks)
+                out[label] = peak_rss(exe, COMMANDS[name](big, dest, ranks), ranks)
             rows.append((name, ranks, n, out["old"], out["new"]))
             print(f"{name:18s} P={ranks} N={n}: old {out['old'][0]:.0f} MB "
                   f"({out['old'][1]:.1f} s, rc {out['old'][2]}), new {out['new'][0]:.0f} MB "

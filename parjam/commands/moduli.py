@@ -13,7 +13,7 @@ def add_parser(sub):
         "translations as null space, preconditioned by a Cholesky factorisation of D + tau I, "
         "MUMPS when available; options -moduli_ksp_* -moduli_pc_*; with -moduli_pc_type gamg "
         "on several ranks, the global -matptap_via allatonce builds GAMG's coarse operators with "
-        "about half the memory of PETSc's default), and report the bulk modulus "
+        "about half the memory of PETSc's default; not on one rank, where it does not exist), and report the bulk modulus "
         "B = -V dp/dV, the isotropic shear modulus G, the smallest shear modulus over all "
         "directions (negative: unstable to some shear in the fixed box) and the residuals.")
     p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
