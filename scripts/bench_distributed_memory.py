@@ -42,6 +42,9 @@ COMMANDS = {
     "moduli (GAMG, allatonce)": lambda f, out, p: (
         ["moduli", f, "-moduli_pc_type", "gamg", "-moduli_ksp_rtol", "1e-4",
          "-moduli_ksp_max_it", "400"] + (["-matptap_via", "allatonce"] if p > 1 else [])),
+    # Trilinos ML (smoothed aggregation too), chosen on the solver's own prefix
+    "moduli (ML)": lambda f, out, p: ["moduli", f, "-moduli_pc_type", "ml",
+                                      "-moduli_ksp_rtol", "1e-4", "-moduli_ksp_max_it", "400"],
 }
 
 
