@@ -14,6 +14,8 @@ Each ``--tiles P:SMALL:K`` is one point: the packing SMALL tiled K^d times
 the peak resident set size (max RSS) of that rank; the table gives the largest over the ranks
 and the ratio NEW / OLD.  KPM uses few moments and probes and GAMG few iterations: the runs
 measure memory, not converged results (a run that fails is marked with its exit code).
+Two moduli variants are not run by default (``--commands``): GAMG with the user's global
+``-matptap_via allatonce`` on P > 1, and Trilinos ML (``-moduli_pc_type ml``).
 """
 
 import argparse
