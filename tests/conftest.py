@@ -1,6 +1,8 @@
 """Shared fixtures.  Tests run serially and under ``mpirun -n 2`` (parjam.testing.mpi_pytest)."""
 
 import os
+import subprocess
+import sys
 import tempfile
 
 import pytest
@@ -47,3 +49,14 @@ def subprocess_env(**extra):
     env.pop("PARJAM_FAULT", None)
     env.update(extra)
     return env
+
+
+def run_on_ranks(test_file, ranks, *pytest_args, timeout=600):
+    """Run a test file of tests/ under ``$PARJAM_MPIRUN -n ranks`` (for the partition cases the
+    2-rank suite cannot make); returns the CompletedProcess, output captured."""
+    mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
+    return subprocess.run(mpirun + ["-n", str(ranks), sys.executable, "-m",
+                                    "parjam.testing.mpi_pytest", "-q", "-p", "no:cacheprovider",
+                                    *pytest_args, os.path.join(ROOT, "tests", test_file)],
+                          cwd=ROOT, env=subprocess_env(), capture_output=True, text=True,
+                          timeout=timeout)

@@ -5,18 +5,16 @@ assembled from its half-edges (AIJ and SBAIJ) equal the replicated assembly, the
 the dense LAPACK references to 1e-8, and no solver leaves options in PETSc's database."""
 
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 from mpi4py import MPI
 
-from parjam import active, env, hessian, kpm, moduli, spectrum
+from parjam import active, env, kpm, moduli, spectrum
 from parjam.io import read_packing
 from parjam.network import analyze
 
-from conftest import DATA, ROOT, subprocess_env
+from conftest import DATA, run_on_ranks
 
 COMM = MPI.COMM_WORLD
 WORLD = env.petsc().COMM_WORLD
@@ -167,10 +165,5 @@ def test_no_options_left_in_the_database():
 @pytest.mark.serial
 def test_the_same_on_three_ranks():
     """A partition case two ranks cannot make: a middle rank with ghosts on both sides."""
-    mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
-    res = subprocess.run(mpirun + ["-n", "3", sys.executable, "-m", "parjam.testing.mpi_pytest",
-                                   "-q", "-p", "no:cacheprovider",
-                                   os.path.join(ROOT, "tests", "test_active.py")],
-                         cwd=ROOT, env=subprocess_env(), capture_output=True, text=True,
-                         timeout=600)
+    res = run_on_ranks("test_active.py", 3)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]

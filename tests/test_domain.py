@@ -3,9 +3,6 @@ balanced slabs, migration that loses and duplicates nothing, ghosts (periodic im
 from several ranks away, empty slabs) and the pairs found from owned + ghost particles.  Runs on
 1 and 2 ranks (the MPI pass) and, through one serial test, on 3."""
 
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -14,7 +11,7 @@ from mpi4py import MPI
 from parjam.domain import SlabDomain
 from parjam.system import neighbour_pairs
 
-from conftest import ROOT, subprocess_env
+from conftest import run_on_ranks
 
 COMM = MPI.COMM_WORLD
 
@@ -133,10 +130,5 @@ def test_bad_width_and_bounds_are_refused():
 def test_the_same_on_three_ranks():
     """A partition case two ranks cannot make: a middle rank whose neighbours differ, and ghosts
     from two ranks away."""
-    mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
-    res = subprocess.run(mpirun + ["-n", "3", sys.executable, "-m", "parjam.testing.mpi_pytest",
-                                   "-q", "-p", "no:cacheprovider",
-                                   os.path.join(ROOT, "tests", "test_domain.py")],
-                         cwd=ROOT, env=subprocess_env(), capture_output=True, text=True,
-                         timeout=600)
+    res = run_on_ranks("test_domain.py", 3)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]

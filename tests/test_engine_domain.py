@@ -4,9 +4,6 @@ boundaries, in a box of fewer cells than ranks, with a rebuild that one rank's p
 triggers, and FIRE on 1 rank against FIRE on all ranks (3 ranks: the serial run reruns this
 file under $PARJAM_MPIRUN -n 3)."""
 
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -19,7 +16,7 @@ from parjam.forces import ForceField
 from parjam.packing import random_packing
 from parjam.system import neighbour_pairs
 
-from conftest import ROOT, subprocess_env
+from conftest import run_on_ranks
 
 COMM = MPI.COMM_WORLD
 
@@ -172,12 +169,7 @@ def test_fire_on_all_ranks_follows_fire_on_one(world, d, poly):
 @pytest.mark.serial
 def test_the_same_on_three_ranks():
     """Partition cases two ranks cannot make: a middle rank, slabs thinner than the cutoff."""
-    mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
-    res = subprocess.run(mpirun + ["-n", "3", sys.executable, "-m", "parjam.testing.mpi_pytest",
-                                   "-q", "-p", "no:cacheprovider", "-k", "not three",
-                                   os.path.join(ROOT, "tests", "test_engine_domain.py")],
-                         cwd=ROOT, env=subprocess_env(), capture_output=True, text=True,
-                         timeout=600)
+    res = run_on_ranks("test_engine_domain.py", 3, "-k", "not three")
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
 
 
