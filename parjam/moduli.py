@@ -260,7 +260,6 @@ def solve_responses(comm, D, rhs, d, tau_rel=1e-10):
     """u = D^+ Xi for every Xi in ``rhs`` (this rank's rows, (n_loc, d)); returns the matrix
     of dot products Xi_k . u_l, and the solver report.  Raises ParjamError when a solve does not
     converge (zero modes of D beyond the translations, or a solver failure)."""
-    PETSc = env.petsc()
     ns, tvecs = translations.nullspace(D, d)
     D.setNullSpace(ns)
     diag = D.getDiagonal()

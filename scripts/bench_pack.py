@@ -16,7 +16,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import subprocess
 import sys
 import tempfile
@@ -115,7 +114,6 @@ def main():
                OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     work = tempfile.mkdtemp(prefix="bench-pack-")
     base = ["pack", "--dim", "3", "--n", str(a.n), "--seed", str(a.seed), "-q"]
-    rows = []
 
     # B: full protocol on 1 and 2 ranks (also gives phi_c for task A)
     full = {}

@@ -129,8 +129,8 @@ def main():
                "stages": records, "total_seconds": total, "peak_mb_total": peak}
     with open(os.path.join(out, "scale.json"), "w") as fh:
         json.dump(summary, fh, indent=1)
-    lines = [f"| stage | ranks | time (s) | peak memory, all processes (MB) | largest process (MB) "
-             f"| exit |", "|---|---|---|---|---|---|"]
+    lines = ["| stage | ranks | time (s) | peak memory, all processes (MB) | largest process (MB) "
+             "| exit |", "|---|---|---|---|---|---|"]
     for r in records:
         lines.append(f"| {r['stage']} | {args.ranks} | {r['seconds']:.0f} | "
                      f"{r['peak_mb_total']:.0f} | {r['peak_mb_process']:.0f} | {r['returncode']} |")

@@ -146,7 +146,6 @@ def run(args):
     from parjam import env, io, modes_io, observables, outputs
 
     PETSc = env.petsc()
-    rank = PETSc.COMM_WORLD.getRank()
     check_sizes(args)
     plateau = parse_pair(args.plateau, "--plateau") if args.plateau else None
     outputs.check(PETSc.COMM_WORLD, files=[("--out", args.out), ("--plot", args.plot)],
