@@ -58,6 +58,7 @@ class ActiveNetwork(NetworkNumbers):
     stress: np.ndarray  # (1/V) sum_contacts -V'(r) r_a r_b / r (compressive positive)
     max_force: float
     mean_force: float
+    pos: np.ndarray = None  # wrapped positions of every owned particle (rows of owned_ids)
 
     @property
     def volume(self):
@@ -79,6 +80,11 @@ class ActiveNetwork(NetworkNumbers):
     @property
     def n_rattlers(self):
         return self.n - self.n_active
+
+    @property
+    def active_pos(self):
+        """Wrapped positions of the owned active rows lo..hi-1 (particles ``ids``)."""
+        return self.pos[~self.rattler]
 
     @property
     def pressure(self):
@@ -179,7 +185,7 @@ def build(comm, x, diam, ids, L, alpha=2.0, eps=1.0, coincide=1e-9):
         hi=hi, L=dom.L, alpha=float(alpha), eps=float(eps), phi=sums["phi"], ids=ids[~rattler],
         owned_ids=ids, rattler=rattler, contacts=act, n_all_contacts=sums["n_all"],
         energy=sums["energy"], stress=sums["stress"], max_force=sums["max_force"],
-        mean_force=sums["mean_force"])
+        mean_force=sums["mean_force"], pos=x)
 
 
 def network_sums(comm, allc, act, x, diam, rattler, alpha, eps, volume):

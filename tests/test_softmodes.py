@@ -64,7 +64,7 @@ _CACHE = {}
 def analysed(comm, pack, texts, allow=False):
     key = (id(pack), tuple(texts), id(comm))
     if key not in _CACHE:
-        cs = sm.prepare(pack, planes(pack, texts), allow_hyperstatic=allow)
+        cs = sm.prepare(pack, planes(pack, texts), allow_hyperstatic=allow, comm=comm)
         _CACHE[key] = sm.analyze(comm, cs, e0=0.1)
     return _CACHE[key]
 
@@ -93,10 +93,11 @@ def test_parse_cut_and_subdivision():
 def test_cut_and_count_match_the_independent_reference(comm, packs, name):
     """q and the null-space dimension after cutting x = L/2 (dense SVD of an independent code)."""
     ref = REF[name]["cut_plane_x_half"]
-    cs = sm.prepare(packs[name], planes(packs[name], ["x=0.5"]), allow_hyperstatic=True)
-    assert cs.q == ref["q"] and cs.n == ref["Nprime"] and len(cs.contacts) == ref["Nc"]
-    M = sm.relaxed_matrix(comm, cs, cs.kept)
-    count = sm.null_count(comm, M, sm.stiffness_scale(cs.kept, cs.alpha, cs.eps))
+    cs = sm.prepare(packs[name], planes(packs[name], ["x=0.5"]), allow_hyperstatic=True,
+                    comm=comm)
+    assert cs.q == ref["q"] and cs.n == ref["Nprime"] and cs.n_contacts == ref["Nc"]
+    M = sm.relaxed_matrix(comm, cs, cs.kept, fmt="sbaij")
+    count = sm.null_count(comm, M, cs.scale)
     M.destroy()
     assert count == ref["n_zero"]
     if cs.isostatic:
@@ -111,7 +112,8 @@ def test_count_and_basis_against_dense_svd(comm, packs, name, cut):
     pack = packs[name]
     res = analysed(comm, pack, CUTS[cut], allow=name in HYPER)
     cs = res.cs
-    S = ref.dense_rigidity(cs, cs.kept)
+    w = cs.gathered()
+    S = ref.dense_rigidity(w, w.kept)
     dim, N0, s = ref.dense_null_space(S)
     assert res.count == dim
     rank = cs.n * cs.d - dim
@@ -135,13 +137,14 @@ def test_trivially_localised_modes_are_in_the_soft_space(comm, packs):
     pack = packs[ISO[0]]
     res = analysed(comm, pack, CUTS["one"])
     cs = res.cs
-    assert cs.localised == 3 and len(cs.localised_particles) > 0
-    S = ref.dense_rigidity(cs, cs.kept)
+    w = cs.gathered()
+    assert cs.localised == 3 and len(w.localised_particles) > 0
+    S = ref.dense_rigidity(w, w.kept)
     V = gathered(comm, res.V)
     T = np.kron(np.ones((cs.n, 1)), np.eye(cs.d)) / np.sqrt(cs.n)
     Q = np.hstack([V, T])
     found = 0
-    for p in cs.localised_particles:
+    for p in w.localised_particles:
         rows = S[:, p * cs.d:(p + 1) * cs.d]
         normals = rows[np.abs(rows).sum(axis=1) > 0]
         _, sv, Wt = np.linalg.svd(normals, full_matrices=True)
@@ -157,8 +160,8 @@ def test_trivially_localised_modes_are_in_the_soft_space(comm, packs):
     assert W.shape[1] == res.n_soft - cs.localised
     assert np.abs(W.T @ W - np.eye(W.shape[1])).max() < 1e-12 and np.abs(S @ W).max() < 1e-12
     L = np.zeros((cs.n * cs.d, cs.localised))
-    for k, (p, w) in enumerate(sm.localised_vectors(cs)):
-        L[p * cs.d:(p + 1) * cs.d, k] = w
+    for k, (p, u) in enumerate(sm.all_localised_vectors(cs)):
+        L[p * cs.d:(p + 1) * cs.d, k] = u
     assert np.abs(W.T @ np.hstack([L, T])).max() < 1e-12
 
 
@@ -177,9 +180,9 @@ def test_extension_of_a_uniform_translation_is_one_half(comm, packs):
     lo, hi = res.lo, res.hi
     t = np.zeros(((hi - lo) * cs.d, 1))
     t[0::cs.d] = 1.0 / np.sqrt(cs.n)
-    g = sm.modulation(cs.pos[lo:hi], cs.L, cs.planes)
+    g = sm.modulation(cs.pos, cs.L, cs.planes)  # the owned rows lo..hi-1
     e = sm.extension(comm, t, g**2)[0]
-    g_all = sm.modulation(cs.pos, cs.L, cs.planes)
+    g_all = sm.modulation(cs.gathered().pos, cs.L, cs.planes)
     assert e == pytest.approx(np.mean(g_all**2), abs=1e-13)
     assert abs(e - 0.5) < 3 * np.std(g_all**2) / np.sqrt(cs.n)
 
@@ -206,7 +209,7 @@ def test_overlap_function_integrates_to_one_and_is_basis_independent(comm, packs
     assert np.sum(res.overlap[:, 2]) * (u[1] - u[0]) == pytest.approx(1.0, abs=1e-12)
     rot, _ = np.linalg.qr(np.random.default_rng(1).normal(size=(res.n_soft, res.n_soft)))
     cs = res.cs
-    x = sm.coordinate_from_plane(cs.pos[res.lo:res.hi], cs.L, cs.planes[0])
+    x = sm.coordinate_from_plane(cs.pos, cs.L, cs.planes[0])
     _, f_rot = sm.overlap_function(comm, res.V @ rot, x, len(u))
     assert np.allclose(f_rot, f, atol=1e-12)
     assert res.c_bound == pytest.approx(f.min())
@@ -219,7 +222,7 @@ def test_extended_subspace_equals_the_appendix_peeling(comm, packs, name):
     res = analysed(comm, packs[name], CUTS["one"])
     cs = res.cs
     V = gathered(comm, res.V)
-    G = np.repeat(sm.modulation(cs.pos, cs.L, cs.planes) ** 2, cs.d)
+    G = np.repeat(sm.modulation(cs.gathered().pos, cs.L, cs.planes) ** 2, cs.d)
     A = V.T @ (G[:, None] * V)
     assert np.allclose(A, np.diag(res.e), atol=1e-12)
     for e0, frac in res.fractions:
@@ -243,7 +246,7 @@ def test_trial_modes_obey_the_bound_and_the_variational_count(comm, packs, name,
     bound = cs.kappa * cs.z_max * res.grad2 / res.e[ext]
     assert np.all(res.trial_energy[ext] <= bound) and np.all(bound <= res.omega_L2 + 1e-12)
     assert cs.kappa <= 1.0  # harmonic contacts: k r^2 = (r/sigma)^2 < 1
-    g = sm.modulation(cs.pos[res.lo:res.hi], cs.L, cs.planes)
+    g = sm.modulation(cs.pos, cs.L, cs.planes)
     T = sm.trial_modes(res.V[:, ext], g, res.e[ext])
     assert sm.orthonormality_error(comm, T) < 1e-10
     Mu = sm.relaxed_matrix(comm, cs, cs.contacts)
@@ -308,9 +311,9 @@ def test_trial_energies_decrease_like_one_over_L_squared(case):
 def test_block_and_krylov_bases_agree(comm, packs, name, cut):
     """Block inverse iteration and SLEPc Krylov-Schur span the same null space (principal
     cosines 1), satisfy Eq. 3 to round-off, and find the same gap above it."""
-    cs = sm.prepare(packs[name], planes(packs[name], CUTS[cut]))
+    cs = sm.prepare(packs[name], planes(packs[name], CUTS[cut]), comm=comm)
     M = sm.relaxed_matrix(comm, cs, cs.kept)
-    scale = sm.stiffness_scale(cs.kept, cs.alpha, cs.eps)
+    scale = cs.scale
     n_soft = sm.null_count(comm, M, scale) - cs.d
     a = sm.null_basis(comm, M, cs.d, n_soft, scale, "block")
     b = sm.null_basis(comm, M, cs.d, n_soft, scale, "krylov")
@@ -461,8 +464,9 @@ def test_figures_segment_cut_count_and_files(comm, packs, tmpdir_all):
 
     pack = packs[ISO[1]]
     cs = psm.segment_cut(sm.prepare(pack, [sm.Plane(0, 0.5)]), sm.Plane(0, 0.5), 5)
-    assert cs.q == 5
-    assert ref.dense_null_space(ref.dense_rigidity(cs, cs.kept))[0] == cs.d + 4
+    assert cs.q == 5 and cs.is_cut.sum() == 10  # both half-edges of each cut contact
+    w = cs.gathered()
+    assert ref.dense_null_space(ref.dense_rigidity(w, w.kept))[0] == cs.d + 4
     if comm.getRank() == 0:
         out = os.path.join(tmpdir_all, "softfig.png")
         info = psm.softfig(pack, out, ncut=5)

@@ -26,16 +26,17 @@ def comm():
 
 
 def cut_system(name, subdivide=None):
+    """The cut system on all ranks (each holds its own rows of the distributed network)."""
     pack = io.read_packing(os.path.join(DATA, name))
     planes = (sm.subdivision_planes(subdivide, pack.d) if subdivide
               else [sm.Plane(0, 0.5)])
-    return sm.prepare(pack, planes, allow_hyperstatic=True)
+    return sm.prepare(pack, planes, allow_hyperstatic=True, comm=PETSc.COMM_WORLD)
 
 
 def bases(comm, cs, widths):
     """The null basis of the cut system for each column width (None: one block)."""
     M = sm.relaxed_matrix(comm, cs, cs.kept)
-    scale = sm.stiffness_scale(cs.kept, cs.alpha, cs.eps)
+    scale = cs.scale
     n_soft = sm.null_count(comm, M, scale) - cs.d
     out = {w: sm.null_basis(comm, M, cs.d, n_soft, scale, "block", columns=w) for w in widths}
     S = sm.rigidity_matrix(comm, cs, cs.kept)
@@ -75,8 +76,8 @@ def test_count_is_d_plus_q_minus_1_minus_the_excess(comm, name):
     """Sec. II: the inertia count of the cut system is d + q - 1 - (Nc - Nc_iso), for the
     isostatic packings and for those 7-13 contacts above isostatic."""
     cs = cut_system(name)
-    M = sm.relaxed_matrix(comm, cs, cs.kept)
-    count = sm.null_count(comm, M, sm.stiffness_scale(cs.kept, cs.alpha, cs.eps))
+    M = sm.relaxed_matrix(comm, cs, cs.kept, fmt="sbaij")
+    count = sm.null_count(comm, M, cs.scale)
     M.destroy()
     assert count == cs.expected_general == sm.expected_zero_modes(cs.d, cs.q, cs.excess)
     assert (cs.excess == 0) == (cs.expected == cs.expected_general)
@@ -89,7 +90,7 @@ def test_fx_is_basis_independent(comm, name):
     cs = cut_system(name, 2)
     got, _, n_soft, _ = bases(comm, cs, (None, 8))
     lo, hi = got[None].lo, got[None].hi
-    u = sm.coordinate_from_plane(cs.pos[lo:hi], cs.L, cs.planes[0])
+    u = sm.coordinate_from_plane(cs.pos, cs.L, cs.planes[0])  # the owned rows lo..hi-1
     rot, _ = np.linalg.qr(np.random.default_rng(2).normal(size=(n_soft, n_soft)))
     f = [sm.overlap_function(comm, V, u, 10)[1]
          for V in (got[None].V, got[8].V, got[8].V @ rot)]

@@ -90,16 +90,18 @@ def peak_rss_mb(comm):
 
 def run(args):
     validate(args)
-    from parjam import env, io, outputs, softmodes as sm
+    from parjam import env, io, outputs, rowio, softmodes as sm
     from parjam.progress import Progress
 
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
     progress = Progress(comm, args.quiet, "softmodes: ")
     outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
-    pack = io.read_packing(args.packing)
-    cs = sm.prepare(pack, planes_from(args, pack.d), args.allow_hyperstatic)
-    progress(f"N' = {cs.n} non-rattlers, Nc = {len(cs.contacts)} ({cs.excess:+d} from "
+    rows = rowio.read_rows(comm, args.packing)  # this rank's rows only, validated
+    planes = planes_from(args, rows.d)
+    net = rowio.network(comm, rows)  # the distributed active network (parjam.active)
+    cs = sm.prepare(None, planes, args.allow_hyperstatic, net=net)
+    progress(f"N' = {cs.n} non-rattlers, Nc = {cs.n_contacts} ({cs.excess:+d} from "
              f"isostatic), q = {cs.q} cut contacts on {len(cs.planes)} plane(s)")
     with sm.scratch_space(comm, args.scratch) as scratch:  # the basis on disk lives in here
         res = sm.analyze(comm, cs, args.e0, args.bins, progress, args.basis, args.columns,
@@ -119,7 +121,7 @@ def run(args):
 
 
 def write(comm, path, res, vectors, prov):
-    """sm.write gathers the basis collectively and writes on rank 0; a failed write there is
+    """sm.write sends each rank's rows to rank 0 in turn, which writes; a failed write there is
     then told to every rank (one line everywhere, no abort)."""
     from parjam import softmodes as sm
 

@@ -15,39 +15,41 @@ from parjam import softmodes as sm
 from parjam.plot import DPI, LEGEND_FONTSIZE, pyplot
 
 
-def crossing_height(cs, plane):
-    """Where each bond crossing ``plane`` meets it: the coordinate along the next axis."""
-    c = cs.contacts
-    a, b = plane.axis, (plane.axis + 1) % cs.d
-    x0 = plane.frac * cs.L
-    xi = cs.pos[c.i, a]
-    image = x0 + cs.L * np.floor((np.maximum(xi, xi + c.rij[:, a]) - x0) / cs.L)
-    t = (image - xi) / np.where(c.rij[:, a] == 0, np.inf, c.rij[:, a])
-    return np.mod(cs.pos[c.i, b] + t * c.rij[:, b], cs.L)
+def crossing_height(pos_i, rij, L, plane):
+    """Where each bond x_i -> x_i + r_ij crossing ``plane`` meets it: the coordinate along the
+    next axis."""
+    a, b = plane.axis, (plane.axis + 1) % pos_i.shape[1]
+    x0 = plane.frac * L
+    xi = pos_i[:, a]
+    image = x0 + L * np.floor((np.maximum(xi, xi + rij[:, a]) - x0) / L)
+    t = (image - xi) / np.where(rij[:, a] == 0, np.inf, rij[:, a])
+    return np.mod(pos_i[:, b] + t * rij[:, b], L)
 
 
 def segment_cut(cs, plane, ncut):
-    """A copy of ``cs`` cutting only ``ncut`` consecutive contacts along ``plane`` (centred on
-    the middle of the box): the paper's "contacts along a vertical line"."""
-    on = sm.crossing(cs.pos[cs.contacts.i, plane.axis], cs.contacts.rij[:, plane.axis], cs.L,
-                     plane.frac * cs.L)
+    """The cut system of ``cs``'s network cutting only ``ncut`` consecutive contacts along
+    ``plane`` (centred on the middle of the box): the paper's "contacts along a vertical line".
+    Figures are serial: ``cs`` must live on one rank (sm.prepare's default, COMM_SELF)."""
+    if cs.comm.Get_size() != 1:
+        raise sm.ParjamError("segment_cut needs the cut system on one rank")
+    c = cs.contacts
+    on = sm.half_edge_masks(cs.net, [plane])[0] & (c.i < c.j)  # each contact once
     idx = np.flatnonzero(on)
     if len(idx) < ncut:
         raise sm.ParjamError(f"the plane {plane.label} crosses only {len(idx)} contacts, "
                              f"fewer than {ncut}")
-    h = crossing_height(cs, plane)[idx]
-    order = idx[np.argsort(np.abs(h - 0.5 * cs.L))][:ncut]
-    mask = np.zeros(len(cs.contacts), dtype=bool)
-    mask[order] = True
-    return dataclasses.replace(cs, is_cut=mask, per_plane=[ncut])
+    h = crossing_height(cs.pos[c.i[idx] - cs.lo], c.rij[idx], cs.L, plane)
+    chosen = idx[np.argsort(np.abs(h - 0.5 * cs.L))][:ncut]
+    key = np.minimum(c.i, c.j) * cs.n + np.maximum(c.i, c.j)
+    mask = np.isin(key, key[chosen])  # both half-edges of every chosen contact
+    return sm.cut_system(cs.net, [plane], mask, [ncut], cs.source)
 
 
 def soft_space(comm, cs):
     """(count, local basis rows) of the null space of a cut system, translations excluded."""
     M = sm.relaxed_matrix(comm, cs, cs.kept)
-    scale = sm.stiffness_scale(cs.kept, cs.alpha, cs.eps)
-    count = sm.null_count(comm, M, scale)
-    nb = sm.null_basis(comm, M, cs.d, count - cs.d, scale)
+    count = sm.null_count(comm, M, cs.scale)
+    nb = sm.null_basis(comm, M, cs.d, count - cs.d, cs.scale)
     M.destroy()
     return count, nb.V
 
@@ -112,16 +114,17 @@ def softfig(pack, path, ncut=20, comm=None):
     cs = segment_cut(sm.prepare(pack, [sm.Plane(0, 0.5)]), sm.Plane(0, 0.5), ncut)
     count, V = soft_space(comm, cs)
     mode, ext = most_extended(comm, cs, V)
+    whole = cs.gathered()
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 7.5))
-    colors = np.where(np.isin(np.arange(pack.n), cs.original), "0.93", "0.75")
+    colors = np.where(np.isin(np.arange(pack.n), whole.original), "0.93", "0.75")
     _disks(ax, pack.pos, pack.diam, pack.L, colors, lw=0.2)
     u = mode.reshape(cs.n, cs.d)
     size = np.linalg.norm(u, axis=1)
     scale = 1.0 / np.percentile(size, 95)  # the 5% largest displacements exceed one diameter
     ax.quiver(cs.pos[:, 0], cs.pos[:, 1], u[:, 0] * scale, u[:, 1] * scale, angles="xy",
               scale_units="xy", scale=1.0, width=0.0018, headwidth=4, color="navy", zorder=2)
-    _bonds(ax, cs.pos, cs.cut, colors="red", linewidths=3.0, zorder=3)
+    _bonds(ax, whole.pos, whole.cut, colors="red", linewidths=3.0, zorder=3)
     _frame(ax, pack.L, f"N = {pack.n}: {ncut} contacts cut (red) along x = L/2; "
            f"{count - cs.d} soft modes besides the {cs.d} translations;\n"
            f"the most extended one (e = {ext:.2f}) as arrows")
@@ -137,13 +140,13 @@ def figs(pack, path, x0=0.5, m=2):
     for ax, planes, zoom in ((axes[0], [sm.Plane(0, x0)], True),
                              (axes[1], sm.subdivision_planes(m, pack.d), False)):
         cs = sm.prepare(pack, planes)
+        whole = cs.gathered()
         colors = np.full(pack.n, "0.75", dtype=object)
-        colors[cs.original] = "0.95"
-        colors[cs.original[cs.localised_particles]] = "orange"
+        colors[whole.original] = "0.95"
+        colors[whole.original[whole.localised_particles]] = "orange"
         _disks(ax, pack.pos, pack.diam, pack.L, colors.astype(str))
-        kept, cut = cs.kept, cs.cut
-        _bonds(ax, cs.pos, kept, colors="0.25", linewidths=0.6)
-        _bonds(ax, cs.pos, cut, colors="red", linewidths=2.0)
+        _bonds(ax, whole.pos, whole.kept, colors="0.25", linewidths=0.6)
+        _bonds(ax, whole.pos, whole.cut, colors="red", linewidths=2.0)
         for p in planes:
             line = ax.axvline if p.axis == 0 else ax.axhline
             line(p.frac * pack.L, color="C0", ls="--", lw=1.0)

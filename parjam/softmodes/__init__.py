@@ -2,11 +2,13 @@
 and the Appendix): cut the contacts crossing planes, extract the null space of the rigidity
 matrix, measure how extended it is, and build the anomalous trial modes.
 
-One module per step, every step distributed over the ranks of ``comm`` (rows split as in
-:func:`parjam.hessian.row_range`, one particle per block of d rows):
+One module per step, every step distributed over the ranks of ``comm`` (the owned active rows
+[lo, hi) of parjam.active, one particle per block of d rows; no rank holds all N particles or
+all contacts):
 
-- :mod:`.cut` -- planes, the bonds crossing them (:func:`crossing`), the active network of the
-  packing (:func:`active_network`, rattlers removed) and the cut system (:func:`prepare`).
+- :mod:`.cut` -- planes, the bonds crossing them (:func:`crossing`) and the cut system on the
+  distributed active network of parjam.active (:func:`prepare`: each rank holds the half-edges
+  of its own rows, global numbers allreduced).
 - :mod:`.operators` -- M = S^T K S (Eq. 1 without the stress term) and S (Eq. 3).
 - :mod:`.counting` -- the null-space dimension by MUMPS inertia, d + q - 1 - (Nc - Nc_iso).
 - :mod:`.basis` -- the basis record and its Eq. 3 check; :mod:`.nullspace` -- block inverse
@@ -15,7 +17,8 @@ One module per step, every step distributed over the ranks of ``comm`` (rows spl
 - :mod:`.observables` -- modulation g, extension, extended subspace, f(x) (Sec. III, Appendix);
   :mod:`.trial` -- trial modes (Eq. rr) and omega_L (Eq. kkk).
 - :mod:`.scratch` -- the basis out of core (``--scratch``): a row-split array on disk.
-- :mod:`.analysis` -- the whole analysis; :mod:`.output` -- the HDF5 file.
+- :mod:`.analysis` -- the whole analysis; :mod:`.output` -- the HDF5 file (per-particle blocks
+  sent to rank 0 one rank at a time).
 
 Dense references for tests live in :mod:`parjam.testing.softmodes_reference`.
 """
@@ -26,31 +29,34 @@ from parjam.softmodes.basis import (BASIS_METHODS, COLUMNS_DEFAULT, COLUMNS_MAX,
                                     eq3_residual)
 from parjam.softmodes.counting import (count_below, expected_zero_modes, null_count,
                                        variational_count)
-from parjam.softmodes.cut import (AXES, ActiveNetwork, CutSystem, Plane, active_network,
-                                  crossing, cut_masks, parse_cut, prepare, subdivision_planes)
+from parjam.softmodes.cut import (AXES, CutSystem, Plane, WholeCut, bound_to, crossing,
+                                  cut_masks, cut_system, half_edge_masks, parse_cut, prepare,
+                                  subdivision_planes)
 from parjam.softmodes.krylov import null_basis_krylov
 from parjam.softmodes.linalg import allmax, allreduce, gram, orthonormality_error, random_block
 from parjam.softmodes.nullspace import gap_above, null_basis, null_basis_block
 from parjam.softmodes.observables import (E0_LADDER, coordinate_from_plane, extended_basis,
                                           extended_fraction, extension, gradient_bound,
-                                          localised_vectors, modulation, overlap_function,
+                                          all_localised_vectors, localised_vectors,
+                                          modulation, overlap_function,
                                           overlap_without_localised, without_localised)
 from parjam.softmodes.operators import (relaxed_matrix, rigidity_matrix, stiffness_scale,
                                         translation_columns, translations)
-from parjam.softmodes.output import gather_columns, write
+from parjam.softmodes.output import blocks_in_turn, cut_pairs, localised_ids, write
 from parjam.softmodes.scratch import ScratchBasis, ScratchSpace, check_directory, scratch_space
 from parjam.softmodes.trial import energies, omega_L2, trial_modes
 
 __all__ = [
-    "AXES", "ActiveNetwork", "BASIS_METHODS", "COLUMNS_DEFAULT", "COLUMNS_MAX", "CutSystem",
-    "E0_LADDER", "NullBasis", "ParjamError", "Plane", "ScratchBasis", "ScratchSpace",
-    "SoftModes", "check_directory", "scratch_space", "active_network", "allmax",
-    "allreduce", "analyze", "characterise", "coordinate_from_plane", "count_below", "crossing",
-    "cut_masks", "energies", "eq3_residual", "expected_zero_modes", "extended_basis", "extended_fraction",
-    "extension", "gap_above", "gather_columns", "gradient_bound", "gram", "localised_vectors",
+    "AXES", "BASIS_METHODS", "COLUMNS_DEFAULT", "COLUMNS_MAX", "CutSystem", "E0_LADDER",
+    "NullBasis", "ParjamError", "Plane", "ScratchBasis", "ScratchSpace", "SoftModes",
+    "WholeCut", "all_localised_vectors", "allmax", "allreduce", "analyze", "blocks_in_turn",
+    "bound_to", "characterise", "check_directory", "coordinate_from_plane", "count_below",
+    "crossing", "cut_masks", "cut_pairs", "cut_system", "energies", "eq3_residual",
+    "expected_zero_modes", "extended_basis", "extended_fraction", "extension", "gap_above",
+    "gradient_bound", "gram", "half_edge_masks", "localised_ids", "localised_vectors",
     "modulation", "null_basis", "null_basis_block", "null_basis_krylov", "null_count",
     "omega_L2", "orthonormality_error", "overlap_function", "overlap_without_localised",
     "parse_cut", "prepare", "random_block", "relaxed_matrix", "rigidity_matrix",
-    "stiffness_scale", "subdivision_planes", "translation_columns", "translations",
-    "trial_modes", "variational_count", "without_localised", "write",
+    "scratch_space", "stiffness_scale", "subdivision_planes", "translation_columns",
+    "translations", "trial_modes", "variational_count", "without_localised", "write",
 ]

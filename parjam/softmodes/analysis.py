@@ -12,20 +12,21 @@ from parjam import env
 from parjam.errors import ParjamError
 from parjam.softmodes.basis import COLUMNS_DEFAULT, eq3_residual
 from parjam.softmodes.counting import null_count, variational_count
-from parjam.softmodes.cut import CutSystem
+from parjam.softmodes.cut import CutSystem, bound_to
 from parjam.softmodes.linalg import orthonormality_error
 from parjam.softmodes.nullspace import null_basis
 from parjam.softmodes.observables import (coordinate_from_plane, extended_basis,
                                           extended_fraction, gradient_bound, modulation,
                                           overlap_function, overlap_without_localised)
-from parjam.softmodes.operators import relaxed_matrix, rigidity_matrix, stiffness_scale
+from parjam.softmodes.operators import relaxed_matrix, rigidity_matrix
 from parjam.softmodes.trial import energies, omega_L2
 
 
 @dataclass(kw_only=True)
 class SoftModes:
     """Everything ``parjam softmodes`` reports for one cut packing (replicated on every rank
-    except ``V``, this rank's rows of the extended basis)."""
+    except ``cs``, this rank's share of the cut network, and ``V``, this rank's rows of the
+    extended basis)."""
 
     cs: CutSystem
     count: int  # null-space dimension, translations included
@@ -68,7 +69,7 @@ class SoftModes:
         cs = self.cs
         ext = self.e > self.e0
         return {
-            "N_active": cs.n, "Nc": len(cs.contacts), "excess": cs.excess, "q": cs.q,
+            "N_active": cs.n, "Nc": cs.n_contacts, "excess": cs.excess, "q": cs.q,
             "count": self.count, "expected": cs.expected if cs.isostatic else None,
             "trivial": cs.trivial, "localised": cs.localised, "n_soft": self.n_soft,
             "gap": self.gap, "eq3_residual": self.eq3, "orthonormality": self.ortho,
@@ -90,26 +91,30 @@ def analyze(comm, cs, e0=0.1, nbins=10, progress=None, basis="block",
     on disk there; the result's ``V`` is then a scratch basis, valid until the space closes."""
     PETSc = env.petsc()
     log = progress or (lambda msg: None)
+    cs = bound_to(cs, comm)
     d = cs.d
-    scale = stiffness_scale(cs.kept, cs.alpha, cs.eps)
+    scale = cs.scale
     times = {}
     t0 = time.perf_counter()
     stage = PETSc.Log.Stage("softmodes: count")
     stage.push()
-    M = relaxed_matrix(comm, cs, cs.kept)
-    count = null_count(comm, M, scale)
+    Ms = relaxed_matrix(comm, cs, cs.kept, fmt="sbaij")  # the inertia's format, no conversion
+    try:
+        count = null_count(comm, Ms, scale)
+    finally:
+        Ms.destroy()
     stage.pop()
     times["count"] = time.perf_counter() - t0
     log(f"null space of the cut system: {count} (expected d + q - 1 = {cs.expected} "
         f"if isostatic), {cs.localised} trivially localised")
     n_soft = count - d
     if n_soft <= 0:
-        M.destroy()
         raise ParjamError(f"the cut system has no soft mode besides the {d} translations "
                           f"(q = {cs.q} cuts on a packing {cs.excess:+d} from isostatic)")
     t0 = time.perf_counter()
     stage = PETSc.Log.Stage("softmodes: null space")
     stage.push()
+    M = relaxed_matrix(comm, cs, cs.kept)
     nb = null_basis(comm, M, d, n_soft, scale, basis, columns,
                     store=None if scratch is None else scratch.basis)
     S = rigidity_matrix(comm, cs, cs.kept)
@@ -137,7 +142,8 @@ def analyze(comm, cs, e0=0.1, nbins=10, progress=None, basis="block",
 def characterise(comm, cs, nb, count, e0, nbins):
     """Extension, f(x) and trial modes of the null basis ``nb`` (rotated in place: ``nb.V`` is
     the extended basis afterwards; no second n x n_soft array is made)."""
-    pos = cs.pos[nb.lo:nb.hi]
+    assert (nb.lo, nb.hi) == (cs.lo, cs.hi)
+    pos = cs.pos  # the owned active rows
     g = modulation(pos, cs.L, cs.planes)
     ortho = orthonormality_error(comm, nb.V)
     u = coordinate_from_plane(pos, cs.L, cs.planes[0])
@@ -150,9 +156,15 @@ def characterise(comm, cs, nb, count, e0, nbins):
     grad2 = gradient_bound(cs.L, cs.planes)
     ext = e > e0
     omega_t2 = float(np.mean(E[ext])) if ext.any() else 0.0
-    n_below = variational_count(comm, Mu, omega_t2) if ext.any() else 0
     Mu.destroy()
-    scale = stiffness_scale(cs.kept, cs.alpha, cs.eps)
+    n_below = 0
+    if ext.any():
+        Ms = relaxed_matrix(comm, cs, cs.contacts, fmt="sbaij")
+        try:
+            n_below = variational_count(comm, Ms, omega_t2)
+        finally:
+            Ms.destroy()
+    scale = cs.scale
     return SoftModes(cs=cs, count=count, n_soft=count - cs.d, V=V, lo=nb.lo, hi=nb.hi, e=e,
                      rayleigh=nb.rayleigh, gap=nb.gap / scale, eq3=0.0, ortho=ortho,
                      overlap=np.stack([centres, f, f_nt], axis=1), trial_energy=E,

@@ -17,12 +17,14 @@ def expected_zero_modes(d, q, excess):
 
 def count_below(comm, M, s, prefix="soft_inertia_"):
     """Number of eigenvalues of the symmetric M below s: the negative inertia of M - s I from a
-    MUMPS LDL^T factorisation (SBAIJ; ICNTL(13) = 1 makes the inertia exact on several ranks)."""
+    MUMPS LDL^T factorisation (SBAIJ; ICNTL(13) = 1 makes the inertia exact on several ranks).
+    M is best assembled as SBAIJ (parjam.hessian.assemble(fmt="sbaij")); an AIJ M is
+    converted."""
     PETSc = env.petsc()
     A = M.copy()
     A.shift(-s)
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-    As = A.convert("sbaij")
+    As = A.convert("sbaij") if "sbaij" not in A.getType() else A
     pc = PETSc.PC().create(comm=comm)
     try:
         pc.setOptionsPrefix(prefix)
@@ -34,7 +36,8 @@ def count_below(comm, M, s, prefix="soft_inertia_"):
         neg, zero, _ = pc.getFactorMatrix().getInertia()
     finally:
         pc.destroy()
-        As.destroy()
+        if As is not A:
+            As.destroy()
         A.destroy()
     return int(neg) + int(zero)
 

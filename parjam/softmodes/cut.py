@@ -1,9 +1,13 @@
 """Cut-plane geometry and the cut system (Wyart et al. 2005, Sections II-III): the planes, the
-bonds crossing them, and the active network (non-rattlers and their contacts) of the packing
-being cut.
+bonds crossing them, and the cut system on the distributed active network (parjam.active).
 
-:func:`active_network` is the one place the non-rattlers and their contacts come from; the
-distributed active network of issue 19 (item 1) replaces its body, nothing else.
+The cut system holds this rank's share only: the half-edges of the owned active rows
+[lo, hi) (every contact twice over all ranks, once on the owner of each end) and each
+half-edge's cut flag, computed from the owned particle's wrapped position and the separation
+vector (:func:`crossing`; the reverse half-edge x_j -> x_j - r_ij crosses the same planes, so
+both halves agree).  Every global number (q, localised modes, z_max, kappa, the stiffness
+scale) is an allreduced sum or maximum over the owned rows, computed once when the system is
+made (:func:`cut_system`), so reading it is never collective.
 """
 
 import re
@@ -11,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import network, potential
+from parjam import potential
 from parjam.errors import ParjamError
 from parjam.network import Contacts
 from parjam.softmodes.counting import expected_zero_modes
@@ -66,63 +70,62 @@ def crossing(x_i, r_a, L, x0):
     return np.floor((x_i - x0) / L) != np.floor((x_i + r_a - x0) / L)
 
 
-def cut_masks(pos, contacts, L, planes):
-    """One mask per plane over ``contacts`` (i < j, r_ij = x_j - x_i minimum image)."""
-    return [crossing(pos[contacts.i, p.axis], contacts.rij[:, p.axis], L, p.frac * L)
+def cut_masks(pos, contacts, L, planes, first=0):
+    """One mask per plane over ``contacts`` (r_ij = x_j - x_i minimum image), each bond taken
+    from its end i at ``pos[i - first]``: whole contacts (i < j) with all positions, or the
+    half-edges of the owned rows first.. with the owned positions."""
+    return [crossing(pos[contacts.i - first, p.axis], contacts.rij[:, p.axis], L, p.frac * L)
             for p in planes]
 
 
 @dataclass
-class ActiveNetwork:
-    """The non-rattlers of a packing (``original``: their packing indices, ascending) and their
-    contacts, in packing indices (``contacts``) and re-indexed over 0..n-1 (``local``)."""
-
-    original: np.ndarray
-    contacts: Contacts
-    local: Contacts
-    excess: int  # Nc - Nc_iso, Nc_iso = d(N' - 1) + 1
-    n_iso: int
-
-    @property
-    def n(self):
-        return len(self.original)
-
-
-def active_network(pack, net=None):
-    """The active network of ``pack``: rattlers removed iteratively (parjam.network.analyze, or
-    ``net`` if given), the non-rattlers numbered 0..n-1 in packing order."""
-    net = net if net is not None else network.analyze(pack)
-    active = ~net.rattler
-    index = np.cumsum(active) - 1
-    c = net.contacts
-    local = Contacts(index[c.i], index[c.j], c.rij, c.r, c.sigma)
-    return ActiveNetwork(np.flatnonzero(active), c, local, int(net.excess), int(net.n_iso))
-
-
-@dataclass
 class CutSystem:
-    """The non-rattlers of a packing, their contacts, and the split into kept and cut ones.
+    """The cut network on this rank: the half-edges of the owned active rows [lo, hi) of the
+    distributed active network ``net`` (global active numbers, i owned) and the cut flag of
+    each.  Global numbers are fields, computed collectively by :func:`cut_system`."""
 
-    Particle indices in ``contacts``, ``kept`` and ``cut`` run over 0..n-1 (non-rattlers of the
-    uncut packing, in their original order); ``original`` maps them back to the packing.
-    """
-
-    d: int
-    L: float
-    alpha: float
-    eps: float
-    pos: np.ndarray  # (n, d) positions of the non-rattlers
-    original: np.ndarray  # (n,) their indices in the packing
-    contacts: Contacts  # all contacts among non-rattlers (the uncut network)
-    is_cut: np.ndarray  # mask over ``contacts``
+    net: object  # parjam.active.ActiveNetwork
+    is_cut: np.ndarray  # mask over the half-edges ``contacts``
     planes: list
-    excess: int  # Nc - Nc_iso of the uncut network
-    n_total: int  # particles in the packing, rattlers included
-    per_plane: list = field(default_factory=list)  # q of each plane (a contact may count twice)
+    per_plane: list  # q of each plane (a contact may count for several)
+    q: int  # cut contacts among the non-rattlers (half-edge count / 2)
+    localised: int  # sum_i max(d - z_i, 0) over the cut network
+    z_max: int  # largest number of contacts of a particle, uncut
+    kappa: float  # max_contacts V''(r) r^2 (1 in the paper's units)
+    scale: float  # mean stiffness V''(r) of the kept contacts
+    source: object = None  # the Packing the network was built from (None: read by rows)
+
+    # --- this rank's share
+    @property
+    def comm(self):
+        return self.net.comm
 
     @property
-    def n(self):
-        return len(self.pos)
+    def lo(self):
+        return self.net.lo
+
+    @property
+    def hi(self):
+        return self.net.hi
+
+    @property
+    def n_local(self):
+        return self.net.hi - self.net.lo
+
+    @property
+    def pos(self):
+        """Wrapped positions of the owned active rows lo..hi-1."""
+        return self.net.active_pos
+
+    @property
+    def ids(self):
+        """Particle ids of the owned active rows."""
+        return self.net.ids
+
+    @property
+    def contacts(self):
+        """Half-edges among the non-rattlers (i owned), the uncut network."""
+        return self.net.contacts
 
     @property
     def kept(self):
@@ -132,9 +135,42 @@ class CutSystem:
     def cut(self):
         return self.contacts.subset(self.is_cut)
 
+    # --- global numbers (no communication)
     @property
-    def q(self):
-        return int(self.is_cut.sum())
+    def d(self):
+        return self.net.d
+
+    @property
+    def L(self):
+        return float(self.net.L[0])
+
+    @property
+    def alpha(self):
+        return self.net.alpha
+
+    @property
+    def eps(self):
+        return self.net.eps
+
+    @property
+    def n(self):
+        """N', the non-rattlers."""
+        return self.net.n_active
+
+    @property
+    def n_total(self):
+        """N, rattlers included."""
+        return self.net.n
+
+    @property
+    def n_contacts(self):
+        """Nc among the non-rattlers, uncut."""
+        return self.net.n_contacts
+
+    @property
+    def excess(self):
+        """Nc - Nc_iso of the uncut network."""
+        return int(self.net.excess)
 
     @property
     def isostatic(self):
@@ -158,56 +194,131 @@ class CutSystem:
         return expected_zero_modes(self.d, self.q, self.excess)
 
     def degree(self, kept=True):
+        """Contacts z_i of each owned active row (its half-edges: every contact of an owned
+        particle is stored on this rank)."""
         c = self.kept if kept else self.contacts
-        return np.bincount(c.i, minlength=self.n) + np.bincount(c.j, minlength=self.n)
+        return np.bincount(c.i - self.lo, minlength=self.n_local)
 
     @property
     def localised_particles(self):
-        """Particles left with fewer than d contacts: each has d - z_i trivially localised modes
-        (it moves alone, perpendicular to its remaining contacts)."""
-        return np.flatnonzero(self.degree() < self.d)
+        """Owned particles (global active numbers) left with fewer than d contacts: each has
+        d - z_i trivially localised modes (it moves alone, perpendicular to its remaining
+        contacts)."""
+        return self.lo + np.flatnonzero(self.degree() < self.d)
+
+    def gathered(self):
+        """The whole cut network on every rank (collective; small systems only: tests, figures
+        and dense references): :class:`WholeCut`, rows in the global active numbering."""
+        mpi = self.comm
+        up = self.contacts.i < self.contacts.j  # each contact once
+        c = self.contacts.subset(up)
+        parts = mpi.allgather((self.pos, self.ids, c.i, c.j, c.rij, c.r, c.sigma,
+                               self.is_cut[up], self.localised_particles))
+        cat = [np.concatenate(col) for col in zip(*parts)]
+        contacts = Contacts(*cat[2:7])
+        order = np.lexsort((contacts.j, contacts.i))
+        return WholeCut(self.d, self.L, cat[0], cat[1], contacts.subset(order), cat[7][order],
+                        cat[8])
+
+
+@dataclass
+class WholeCut:
+    """A cut system gathered on one rank (:meth:`CutSystem.gathered`): contacts i < j, once."""
+
+    d: int
+    L: float
+    pos: np.ndarray  # (N', d)
+    original: np.ndarray  # particle id of each active number
+    contacts: Contacts
+    is_cut: np.ndarray
+    localised_particles: np.ndarray
 
     @property
-    def localised(self):
-        z = self.degree()
-        return int(np.maximum(self.d - z, 0).sum())
+    def n(self):
+        return len(self.pos)
 
     @property
-    def z_max(self):
-        return int(self.degree(kept=False).max())
+    def kept(self):
+        return self.contacts.subset(~self.is_cut)
 
     @property
-    def kappa(self):
-        """max_contacts V''(r) r^2: 1 in the paper's units (harmonic, k sigma^2 = 1, r < sigma)."""
-        c = self.contacts
-        return float((potential.d2V(c.r, c.sigma, self.alpha, self.eps) * c.r**2).max())
-
-    def cut_original(self):
-        """The q removed contacts as (i, j) pairs of the packing's particle indices."""
-        c = self.cut
-        return np.stack([self.original[c.i], self.original[c.j]], axis=1).reshape(-1, 2)
+    def cut(self):
+        return self.contacts.subset(self.is_cut)
 
 
-def prepare(pack, planes, allow_hyperstatic=False, net=None):
-    """Remove rattlers, check isostaticity and cut the contacts crossing ``planes``."""
+def half_edge_masks(net, planes):
+    """One mask per plane over the half-edges of ``net``, each from its owned end."""
+    return cut_masks(net.active_pos, net.contacts, float(net.L[0]), planes, first=net.lo)
+
+
+def cut_system(net, planes, is_cut, per_plane, source=None):
+    """The :class:`CutSystem` of the half-edge mask ``is_cut`` (collective: q, the localised
+    count, z_max, kappa and the stiffness scale are allreduced here, once)."""
+    from mpi4py import MPI
+
+    mpi = net.comm
+    c = net.contacts
+    kept = c.subset(~is_cut)
+    d = net.d
+    z = np.bincount(kept.i - net.lo, minlength=net.hi - net.lo)
+    z_all = np.bincount(c.i - net.lo, minlength=net.hi - net.lo)
+    k = potential.d2V(c.r, c.sigma, net.alpha, net.eps)
+    sums = mpi.allreduce(np.array([is_cut.sum(), np.maximum(d - z, 0).sum(),
+                                   k[~is_cut].sum(), len(kept)], dtype=float))
+    n_cut = int(round(sums[0]))
+    if n_cut % 2:
+        raise ParjamError("the two ends of a cut contact disagree on which side of a plane it "
+                          "lies (a particle on the plane to round-off?); move the plane")
+    z_max = mpi.allreduce(int(z_all.max()) if len(z_all) else 0, op=MPI.MAX)
+    kappa = mpi.allreduce(float((k * c.r**2).max()) if len(c) else 0.0, op=MPI.MAX)
+    return CutSystem(net, is_cut, list(planes), [int(p) for p in per_plane], n_cut // 2,
+                     int(round(sums[1])), z_max, kappa,
+                     float(sums[2] / sums[3]) if sums[3] else 1.0, source)
+
+
+def prepare(pack, planes, allow_hyperstatic=False, net=None, comm=None):
+    """The cut system: the distributed active network (``net``, from parjam.rowio.network, or
+    built from the packing ``pack`` every rank holds on ``comm``, default COMM_SELF), checked
+    for isostaticity, its half-edges crossing ``planes`` cut (collective)."""
     if not planes:
         raise ParjamError("no cut given: use --cut AXIS=FRACTION and/or --subdivide M")
-    act = active_network(pack, net)
-    if act.n == 0:
-        raise ParjamError(f"all {pack.n} particles are rattlers: not a jammed packing, "
+    if net is None:
+        from parjam import active, env
+
+        comm = comm if comm is not None else env.petsc().COMM_SELF
+        net = active.from_packing(comm, pack)
+    if net.n_active == 0:
+        raise ParjamError(f"all {net.n} particles are rattlers: not a jammed packing, "
                           "there is no contact network to cut")
-    if act.excess != 0 and not allow_hyperstatic:
-        kind = "hyperstatic" if act.excess > 0 else "hypostatic"
+    if net.excess != 0 and not allow_hyperstatic:
+        kind = "hyperstatic" if net.excess > 0 else "hypostatic"
         raise ParjamError(
-            f"the packing is not isostatic: Nc = {len(act.contacts)} contacts among N' = "
-            f"{act.n} non-rattlers, Nc_iso = d(N'-1)+1 = {act.n_iso} ({kind} by "
-            f"{act.excess:+d}; dphi too large?). The soft-mode count d + q - 1 needs an "
+            f"the packing is not isostatic: Nc = {net.n_contacts} contacts among N' = "
+            f"{net.n_active} non-rattlers, Nc_iso = d(N'-1)+1 = {net.n_iso} ({kind} by "
+            f"{net.excess:+d}; dphi too large?). The soft-mode count d + q - 1 needs an "
             "isostatic packing (dphi -> 0); pass --allow-hyperstatic to analyse it anyway")
-    masks = cut_masks(pack.pos, act.contacts, pack.L, planes)
-    for p, m in zip(planes, masks):
-        if not m.any():
-            raise ParjamError(f"the plane {p.label} cuts no contact among the {act.n} "
-                              "non-rattlers: nothing to analyse (is the packing jammed?)")
-    return CutSystem(pack.d, pack.L, pack.alpha, pack.eps, pack.pos[act.original],
-                     act.original, act.local, np.logical_or.reduce(masks),
-                     list(planes), act.excess, pack.n, [int(m.sum()) for m in masks])
+    masks = half_edge_masks(net, planes)
+    per_plane = net.comm.allreduce(np.array([m.sum() for m in masks], dtype=np.int64)) // 2
+    for p, q in zip(planes, per_plane):
+        if q == 0:
+            raise ParjamError(f"the plane {p.label} cuts no contact among the "
+                              f"{net.n_active} non-rattlers: nothing to analyse (is the "
+                              "packing jammed?)")
+    return cut_system(net, planes, np.logical_or.reduce(masks), per_plane, source=pack)
+
+
+def bound_to(cs, comm):
+    """``cs`` on the communicator ``comm``: itself when its network lives there, else (a system
+    prepared from a packing on another communicator) the same cut made again on ``comm``."""
+    from mpi4py import MPI
+
+    mine = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
+    if MPI.Comm.Compare(mine, cs.comm) in (MPI.IDENT, MPI.CONGRUENT):
+        return cs
+    if cs.source is None:
+        raise ParjamError("a cut system read by rows cannot move to another communicator")
+    from parjam import active
+
+    net = active.from_packing(comm, cs.source)
+    masks = half_edge_masks(net, cs.planes)
+    return cut_system(net, cs.planes, np.logical_or.reduce(masks), cs.per_plane, cs.source)

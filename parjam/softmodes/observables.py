@@ -106,18 +106,25 @@ def overlap_function(comm, V, u, nbins):
 
 
 def localised_vectors(cs):
-    """The trivially localised modes: for each particle left with z_i < d contacts, an
-    orthonormal basis of the directions perpendicular to its remaining contact normals, as
-    (particle, d-vector) pairs (same list on every rank)."""
+    """The trivially localised modes of this rank's particles: for each owned particle left
+    with z_i < d contacts, an orthonormal basis of the directions perpendicular to its remaining
+    contact normals, as (global active number, d-vector) pairs.  Its contacts are its own
+    half-edges (sorted by owned row), so this is a search, not a loop over the contacts."""
     kept = cs.kept
     out = []
     for p in cs.localised_particles:
-        mine = (kept.i == p) | (kept.j == p)
-        normals = kept.rij[mine] / kept.r[mine, None]
+        a, z = np.searchsorted(kept.i, [p, p + 1])
+        normals = kept.rij[a:z] / kept.r[a:z, None]
         _, sv, Wt = np.linalg.svd(normals.reshape(-1, cs.d), full_matrices=True)
         rank = int(np.count_nonzero(sv > 1e-10))
         out += [(int(p), w) for w in Wt[rank:]]
     return out
+
+
+def all_localised_vectors(cs):
+    """:func:`localised_vectors` of every rank, in rank order, on every rank (collective; a few
+    per cut contact, never O(N))."""
+    return [pw for part in cs.comm.allgather(localised_vectors(cs)) for pw in part]
 
 
 def localised_complement(comm, cs, V, lo, hi):
@@ -126,7 +133,7 @@ def localised_complement(comm, cs, V, lo, hi):
     C = Q^T V.  The localised modes live on single particles, so Q is never stored: ``rows(a,
     z)`` builds its local rows a..z-1 (a chunk); C, W and the Gram matrices are small."""
     d = cs.d
-    loc = [(p, w) for p, w in localised_vectors(cs)]
+    loc = all_localised_vectors(cs)
     nl = len(loc)
     t = 1.0 / np.sqrt(cs.n)
     # Z = [L, T]: L orthonormal (disjoint particles, or orthonormal directions on one), T the

@@ -1,53 +1,54 @@
 """The operators of the cut system (Wyart et al. 2005): the relaxed-spring matrix M = S^T K S
 (Eq. 1 without the stress term) and the rigidity (compatibility) matrix S of Eq. 3, assembled
-over the rows of :func:`parjam.hessian.row_range` (one particle per block of d rows), and the d
-translations that span their trivial null space."""
+from the half-edges of the owned active rows [lo, hi) of the distributed active network (one
+particle per block of d rows, parjam.hessian), and the d translations that span their trivial
+null space."""
 
 import numpy as np
 
 from parjam import env, hessian, potential
 
 
-def owned(c, lo, hi):
-    """Contacts with at least one endpoint among this rank's particles [lo, hi)."""
-    return ((c.i >= lo) & (c.i < hi)) | ((c.j >= lo) & (c.j < hi))
-
-
-def relaxed_matrix(comm, cs, contacts):
+def relaxed_matrix(comm, cs, contacts, fmt="aij", shift=0.0):
     """Distributed relaxed-spring matrix M = sum_c k_c n n^T (Eq. 1 without the stress term,
-    = S^T K S) of ``contacts`` over the n non-rattlers."""
-    lo, hi = hessian.row_range(cs.n, comm)
-    c = contacts.subset(owned(contacts, lo, hi))
-    blocks = hessian.contact_blocks(c.rij, c.r, c.sigma, cs.alpha, cs.eps, kind="relaxed")
-    return hessian.assemble(comm, cs.n, cs.d, c.i, c.j, blocks)
+    = S^T K S) of the half-edges ``contacts`` (``cs.kept`` or ``cs.contacts``) over the N'
+    non-rattlers; ``fmt`` "aij" (MatMult, KSP) or "sbaij" (MUMPS inertia), assembled directly;
+    ``shift`` is added to the diagonal."""
+    blocks = hessian.contact_blocks(contacts.rij, contacts.r, contacts.sigma, cs.alpha, cs.eps,
+                                    kind="relaxed")
+    return hessian.assemble(comm, cs.n, cs.d, contacts.i, contacts.j, blocks, shift=shift,
+                            rows=(cs.lo, cs.hi), fmt=fmt)
 
 
 def rigidity_matrix(comm, cs, contacts):
     """Distributed rigidity matrix S (Nc x dN'): row c is (dR_j - dR_i) . n_ij (Eq. 3).
 
-    Contact rows are split evenly over the ranks; the columns follow the row layout of M, so S
-    multiplies the basis vectors directly.
+    Each contact is one row, on the rank owning its lower-numbered end (the half-edges with
+    i < j); the columns follow the row layout of M, so S multiplies the basis vectors directly.
     """
     PETSc = env.petsc()
-    nc, d = len(contacts), cs.d
-    lo_c, hi_c = hessian.row_range(nc, comm) if nc else (0, 0)
-    lo, hi = hessian.row_range(cs.n, comm)
-    i, j = contacts.i[lo_c:hi_c], contacts.j[lo_c:hi_c]
-    n = contacts.rij[lo_c:hi_c] / contacts.r[lo_c:hi_c, None]
-    a, b = np.minimum(i, j), np.maximum(i, j)
-    sign_a = np.where(a == i, -1.0, 1.0)[:, None]  # -n on particle i, +n on particle j
-    cols = np.concatenate([a[:, None] * d + np.arange(d), b[:, None] * d + np.arange(d)], axis=1)
-    vals = np.concatenate([sign_a * n, -sign_a * n], axis=1)
-    indptr = np.arange(0, 2 * d * len(i) + 1, 2 * d, dtype=PETSc.IntType)
-    S = PETSc.Mat().createAIJ(((hi_c - lo_c, nc), ((hi - lo) * d, cs.n * d)),
-                              csr=(indptr, cols.ravel().astype(PETSc.IntType), vals.ravel()),
-                              comm=comm)
-    return S
+    d = cs.d
+    c = contacts.subset(contacts.i < contacts.j)
+    nrows = len(c)
+    nc = comm.tompi4py().allreduce(nrows)
+    n = c.rij / c.r[:, None]
+    cols = np.concatenate([c.i[:, None] * d + np.arange(d), c.j[:, None] * d + np.arange(d)],
+                          axis=1)
+    vals = np.concatenate([-n, n], axis=1)  # -n on particle i, +n on particle j (i < j)
+    indptr = np.arange(0, 2 * d * nrows + 1, 2 * d, dtype=PETSc.IntType)
+    return PETSc.Mat().createAIJ(((nrows, nc), (cs.n_local * d, cs.n * d)),
+                                 csr=(indptr, cols.ravel().astype(PETSc.IntType), vals.ravel()),
+                                 comm=comm)
 
 
-def stiffness_scale(contacts, alpha, eps):
-    """Mean contact stiffness k = V''(r): the unit in which the thresholds are set."""
-    return float(np.mean(potential.d2V(contacts.r, contacts.sigma, alpha, eps)))
+def stiffness_scale(contacts, alpha, eps, comm=None):
+    """Mean contact stiffness k = V''(r): the unit in which the thresholds are set (over the
+    ranks of ``comm`` when given: half-edges count every contact twice, the mean is the same)."""
+    k = potential.d2V(contacts.r, contacts.sigma, alpha, eps)
+    if comm is None:
+        return float(np.mean(k))
+    s = comm.tompi4py().allreduce(np.array([k.sum(), len(k)], dtype=float))
+    return float(s[0] / s[1])
 
 
 def translations(M, d):
