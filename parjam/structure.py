@@ -53,14 +53,19 @@ def mode_amplitudes(vectors, pos, kvecs):
     return re + 1j * im
 
 
-def polarisation_weights(vectors, pos, kvecs, chunk=16):
+def polarisation_weights(vectors, pos, kvecs, chunk=16, comm=None):
     """Per-mode longitudinal and transverse weights |k^.A|^2 / N' and (|A|^2 - |k^.A|^2) / N',
-    each (K, M); computed in chunks of wavevectors to bound memory."""
-    n = vectors.shape[1]
+    each (K, M); computed in chunks of wavevectors to bound memory.  With an mpi4py ``comm``,
+    ``vectors`` and ``pos`` are this rank's rows (particles) only: the amplitudes A are sums
+    over particles, summed over the ranks by one allreduce per chunk."""
+    n = vectors.shape[1] if comm is None else comm.allreduce(vectors.shape[1])
     WL, WT = [], []
     for s in range(0, len(kvecs), chunk):
         kv = kvecs[s:s + chunk]
         A = mode_amplitudes(vectors, pos, kv)
+        if comm is not None:
+            A, part = np.empty_like(A), np.ascontiguousarray(A)
+            comm.Allreduce(part, A)
         khat = kv / np.linalg.norm(kv, axis=1)[:, None]
         a_par = np.einsum("kma,ka->km", A, khat)
         total = np.einsum("kma,kma->km", A, A.conj()).real
@@ -98,9 +103,11 @@ class StructureFactor:
         return np.array([peak_frequency(self.omega, row, smooth) for row in w])
 
 
-def compute(vectors, omega, pos, L, k_max):
+def compute(vectors, omega, pos, L, k_max, comm=None):
     """Structure factors of the modes ``vectors`` (M, N', d) with frequencies ``omega`` at the
-    non-rattler positions ``pos`` (N', d), for the box wavevectors up to ``k_max``."""
+    non-rattler positions ``pos`` (N', d), for the box wavevectors up to ``k_max``.  With an
+    mpi4py ``comm``: each rank passes the rows of its own non-rattlers (any split, the same
+    modes on every rank) and gets the whole result (collective)."""
     vectors = np.asarray(vectors, dtype=float)
     if vectors.ndim != 3 or vectors.shape[1:] != pos.shape:
         raise ParjamError("eigenvectors and positions do not match: the structure factor needs "
@@ -108,7 +115,7 @@ def compute(vectors, omega, pos, L, k_max):
     d = pos.shape[1]
     mvec = wavevector_indices(L, d, k_max)
     kvecs = 2.0 * np.pi * mvec / L
-    WL, WT = polarisation_weights(vectors, pos, kvecs)
+    WL, WT = polarisation_weights(vectors, pos, kvecs, comm=comm)
     m2 = (mvec * mvec).sum(axis=1)
     shells, inverse, counts = np.unique(m2, return_inverse=True, return_counts=True)
     SL = np.zeros((len(shells), len(omega)))

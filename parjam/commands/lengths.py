@@ -54,15 +54,16 @@ MAX_K = 100_000  # as parjam modes: beyond 1e5 lowest pairs use the dense solver
 MAX_PHASES = 100_000_000
 
 
-def check_kmax(kmax, pack):
-    """Bound the work of --kmax before anything is allocated (the box is known only now)."""
+def check_kmax(kmax, rows):
+    """Bound the work of --kmax before anything is allocated (the box is known only now;
+    ``rows``: a packing or this rank's rowio.Rows, anything with n, d and L)."""
     if kmax is None:
         return
-    m = np.floor(kmax * pack.L / (2.0 * np.pi))
-    log_phases = pack.d * np.log10(2.0 * m + 1.0) + np.log10(pack.n)  # no overflow warning
+    m = np.floor(kmax * rows.L / (2.0 * np.pi))
+    log_phases = rows.d * np.log10(2.0 * m + 1.0) + np.log10(rows.n)  # no overflow warning
     if not log_phases <= np.log10(MAX_PHASES):
-        raise ParjamError(f"--kmax {kmax:g} spans {2 * m + 1:.3g}^{pack.d} box wavevectors x "
-                          f"{pack.n} particles (more than {MAX_PHASES:.0e} phases); the "
+        raise ParjamError(f"--kmax {kmax:g} spans {2 * m + 1:.3g}^{rows.d} box wavevectors x "
+                          f"{rows.n} particles (more than {MAX_PHASES:.0e} phases); the "
                           f"structure factors need k up to a few pi / sigma: lower --kmax")
 
 
@@ -106,7 +107,7 @@ def validate(args):
 
 
 def run(args):
-    from parjam import env, io, lengths, outputs
+    from parjam import env, io, lengths, outputs, rowio
     from parjam.progress import Progress
 
     PETSc = env.petsc()
@@ -114,11 +115,11 @@ def run(args):
     what, edges, plateau = validate(args)
     outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
     progress = Progress(comm, args.quiet, "lengths: ")
-    pack = io.read_packing(args.packing)
-    check_kmax(args.kmax, pack)
+    rows = rowio.read_rows(comm, args.packing)  # this rank's rows only (parjam.rowio)
+    check_kmax(args.kmax, rows)
     res = lengths.compute(
-        comm, pack, what, matrix=args.matrix, k=args.k, method=args.method, plateau=plateau,
-        ells=None if edges is None else np.array(edges) * pack.L, samples=args.samples,
+        comm, rows, what, matrix=args.matrix, k=args.k, method=args.method, plateau=plateau,
+        ells=None if edges is None else np.array(edges) * rows.L, samples=args.samples,
         seed=args.seed, k_max=args.kmax, k_fit=args.kfit, smooth=args.smooth,
         progress=progress, e0=args.e0)
     if args.out:
