@@ -29,6 +29,10 @@ file's size bound is reserved on disk first (``posix_fallocate``), so a full dis
 line ``PATH: cannot write (No space left on device)`` before HDF5 writes anything, and HDF5
 writes through a file object (h5py's ``fileobj`` driver) whose end of file is the data written,
 not the reservation.  Every method is collective: a failure on rank 0 is raised on every rank.
+
+Why one file of ~510 lines: reading and writing by row blocks share the row split
+(``active.row_block``), the collective one-line error policy and the layout of parjam's files;
+the sections are reading, writing, and the per-particle datasets of parjam's files.
 """
 
 import contextlib
@@ -40,13 +44,25 @@ from dataclasses import dataclass
 import h5py
 import numpy as np
 
-from parjam import active, io, outputs
+from parjam import active, env, io, outputs
 from parjam.domain import as_mpi
 from parjam.errors import ParjamError
 from parjam.system import wrap
 
 POSITIONS, DIAMETERS = "particles/all/position/value", "particles/all/diameter"
 SPECIES = "particles/all/species"
+
+
+READ, NETWORK, WRITE = "parjam: read rows", "parjam: active network", "parjam: write rows"
+_events = {}
+
+
+def event(name):
+    """The PETSc log event ``name`` (READ, NETWORK or WRITE), registered once: ``-log_view``
+    shows the reading, the network and the writing of every command built on this module."""
+    if name not in _events:
+        _events[name] = env.petsc().Log.Event(name)
+    return _events[name]
 
 
 @dataclass
@@ -81,7 +97,11 @@ def collective(comm, problem):
 
 def read_rows(comm, path):
     """This rank's block of rows of a packing file, validated (collective)."""
-    comm = as_mpi(comm)
+    with event(READ):
+        return read_validated(as_mpi(comm), path)
+
+
+def read_validated(comm, path):
     path = str(path)
     head, problem = None, None
     try:
@@ -135,8 +155,9 @@ def network(comm, source):
     row ranges (collective)."""
     rows = source if isinstance(source, Rows) else read_rows(comm, source)
     try:
-        return active.build(comm, rows.pos, rows.diam, rows.ids, rows.L, rows.alpha, rows.eps,
-                            coincide=io.DUPLICATE_TOL)
+        with event(NETWORK):
+            return active.build(comm, rows.pos, rows.diam, rows.ids, rows.L, rows.alpha,
+                                rows.eps, coincide=io.DUPLICATE_TOL)
     except ValueError as exc:  # raised on every rank alike (active.check_distinct)
         raise ParjamError(f"{rows.path}: {exc}") from None
 
@@ -288,7 +309,10 @@ class RowFile:
     def rows(self, name, block, axis=0, attrs=None):
         """The dataset ``name`` made of every rank's ``block`` stacked along ``axis`` in rank
         order (the other axes equal on every rank; a rank may hold no rows).  Collective."""
-        block = np.asarray(block)
+        with event(WRITE):
+            self.write_rows(name, np.asarray(block), axis, attrs)
+
+    def write_rows(self, name, block, axis, attrs):
         shapes = self.comm.allgather((block.shape, block.dtype.str))
         counts = [shape[axis] for shape, _ in shapes]
         rest = {shape[:axis] + shape[axis + 1:] for shape, _ in shapes}
