@@ -96,19 +96,35 @@ def write_particles(f, pack, group="all"):
     no ``unit`` attribute: MDAnalysis refuses any unit it cannot convert to its own (even with
     convert_units=False), and parjam's units are reduced (sigma, epsilon); every other
     dimensionful quantity names its unit (docs/file-format.md)."""
-    part = f.create_group(f"particles/{group}")
-    box = part.create_group("box")
-    box.attrs["dimension"] = np.int32(pack.d)
-    box.attrs["boundary"] = np.array([b"periodic"] * pack.d, dtype="S8")
-    edges = box.create_group("edges")
-    _time_series(edges, np.full((1, pack.d), pack.L), LENGTH)
-    pos = part.create_group("position")
-    _time_series(pos, pack.pos[None, :, :], None)
+    part = particles_header(f, pack.d, pack.L, group)
+    part["position/value"] = pack.pos[None, :, :]
     part.create_dataset("diameter", data=pack.diam).attrs["unit"] = fixed_string(LENGTH)
     species = pack.meta.get("species")
     species = np.zeros(pack.n, np.int32) if species is None else np.asarray(species, np.int32)
     part.create_dataset("species", data=species)
     return part
+
+
+def particles_header(f, d, L, group="all"):
+    """/particles/GROUP without its per-particle datasets: the box (attributes and the edges'
+    time series) and the position time series' step and time; the caller adds
+    ``position/value`` (1, N, d), ``diameter`` (N,) with :func:`diameter_attrs` and ``species``
+    (N,) int32 (:func:`write_particles` at once, parjam.rowio by row blocks)."""
+    part = f.create_group(f"particles/{group}")
+    box = part.create_group("box")
+    box.attrs["dimension"] = np.int32(d)
+    box.attrs["boundary"] = np.array([b"periodic"] * d, dtype="S8")
+    edges = box.create_group("edges")
+    _time_series(edges, np.full((1, d), L), LENGTH)
+    pos = part.create_group("position")
+    pos.create_dataset("step", data=np.array([0], dtype=np.int64))
+    pos.create_dataset("time", data=np.array([0.0]))
+    return part
+
+
+def diameter_attrs():
+    """The attributes of /particles/GROUP/diameter."""
+    return {"unit": fixed_string(LENGTH)}
 
 
 def _time_series(group, value, unit):
@@ -129,18 +145,42 @@ def write_packing(path, pack, net, parameters, prov=None, observables=None):
         part = write_particles(f, pack)
         part.create_dataset("rattler", data=net.rattler.astype(np.int8))
         _write_contacts(f, pack, net)
-        obs = f.create_group("observables")
-        values = dict(net.summary(), stress_tensor=net.stress, **(observables or {}))
-        for key, val in values.items():
-            unit = OBSERVABLE_UNITS.get(key)
-            unit = pressure_unit(pack.d) if unit == "pressure" else unit
-            _time_series(obs.create_group(key), np.asarray(val)[None, ...], unit)
-        par = f.create_group("parameters")
-        par.attrs["alpha"] = pack.alpha
-        par.attrs["epsilon"] = pack.eps
-        par.attrs["phi"] = pack.phi
-        for key, val in parameters.items():
-            par.attrs[key] = _attr(val)
+        write_observables(f, pack.d, dict(net.summary(), stress_tensor=net.stress,
+                                          **(observables or {})))
+        write_parameters(f, pack.alpha, pack.eps, pack.phi, parameters)
+
+
+def write_observables(f, d, values):
+    """/observables/NAME: one H5MD time series of one frame per value, with its unit."""
+    obs = f.create_group("observables")
+    for key, val in values.items():
+        unit = OBSERVABLE_UNITS.get(key)
+        unit = pressure_unit(d) if unit == "pressure" else unit
+        _time_series(obs.create_group(key), np.asarray(val)[None, ...], unit)
+
+
+def write_parameters(f, alpha, eps, phi, parameters):
+    """/parameters attributes: alpha, epsilon, phi, then the run's ``parameters``."""
+    par = f.create_group("parameters")
+    par.attrs["alpha"] = alpha
+    par.attrs["epsilon"] = eps
+    par.attrs["phi"] = phi
+    for key, val in parameters.items():
+        par.attrs[key] = _attr(val)
+
+
+def contact_attrs():
+    """Units of the per-contact datasets of /connectivity (``contacts`` has none: its
+    ``particles_group`` reference is set by :func:`link_contacts`)."""
+    return {"force": {"unit": fixed_string(FORCE)},
+            "stiffness": {"unit": fixed_string("epsilon sigma-2")}}
+
+
+def link_contacts(f):
+    """The H5MD connectivity module's object reference from /connectivity/contacts to the
+    particles group."""
+    f["connectivity/contacts"].attrs.create("particles_group", f["particles/all"].ref,
+                                            dtype=h5py.ref_dtype)
 
 
 def observable(f, name):
@@ -161,9 +201,7 @@ def _write_contacts(f, pack, net):
     g.create_dataset("force", data=fmag).attrs["unit"] = fixed_string(FORCE)
     g.create_dataset("stiffness", data=potential.d2V(c.r, c.sigma, pack.alpha, pack.eps)
                      ).attrs["unit"] = fixed_string("epsilon sigma-2")
-    # H5MD connectivity module: an object reference to the particles group
-    g["contacts"].attrs.create("particles_group", f["particles/all"].ref,
-                               dtype=h5py.ref_dtype)
+    link_contacts(f)  # H5MD connectivity module: an object reference to the particles group
 
 
 MAX_PARTICLES = 50_000_000  # a file claiming more is refused before anything is read

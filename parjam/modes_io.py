@@ -13,9 +13,9 @@ plus
                                           omega_star, plateau window)
 
 with the run's settings as attributes of /modes, and the packing the modes belong to as
-/particles/all (box, positions, diameters, species: parjam.io.write_particles), so that H5MD
-readers such as MDAnalysis open a spectrum file like a packing file.  Written atomically by
-rank 0 only.
+/particles/all (box, positions, diameters, species, as parjam.io.write_particles writes them),
+so that H5MD readers such as MDAnalysis open a spectrum file like a packing file.  Written
+atomically by all ranks together (parjam.rowio): no rank holds the packing's N rows.
 """
 
 import json
@@ -24,7 +24,8 @@ import os
 import h5py
 import numpy as np
 
-from parjam import io, observables
+from parjam import active, io, observables, rowio
+from parjam.domain import as_mpi
 from parjam.errors import ParjamError
 
 FORMAT = "parjam-spectrum 1"
@@ -50,32 +51,55 @@ def mode_attrs(spec, system, packing_path, ranks):
     }
 
 
-def write_spectrum(path, spec, system, packing_path, dos, prov):
-    """Write one spectrum file (call on rank 0 only)."""
-    pack = io.read_packing(packing_path) if packing_path else None
-    with io.atomic_h5(path) as f:
-        io.write_h5md_header(f, prov)
-        if pack is not None:
-            io.write_particles(f, pack)
-        g = f.create_group("modes")
-        for key, val in mode_attrs(spec, system, packing_path, prov.get("ranks", 1)).items():
-            g.attrs[key] = val
-        # omega in units of 1/tau, tau = sigma sqrt(m / epsilon) with unit masses m = 1
-        g.create_dataset("eigenvalue", data=spec.eigenvalue).attrs["unit"] = \
-            io.fixed_string("tau-2")
-        g.create_dataset("frequency", data=spec.frequency).attrs["unit"] = \
-            io.fixed_string("tau-1")
-        g.create_dataset("error", data=spec.error)
-        g.create_dataset("participation_ratio", data=spec.participation_ratio)
-        g.create_dataset("eps_perp", data=spec.eps_perp)
-        g.create_dataset("eps_par", data=spec.eps_par)
-        g.create_dataset("active_particles", data=system.active.astype(np.int64))
-        if spec.vectors is not None:
-            g.create_dataset("eigenvector", data=spec.vectors)
-        rej = g.create_group("rejected")
-        rej.create_dataset("eigenvalue", data=spec.rejected_eigenvalue)
-        rej.create_dataset("error", data=spec.rejected_error)
-        write_dos(f, dos)
+def write_spectrum(comm, path, spec, system, rows, dos, prov):
+    """Write one spectrum file (collective): the per-mode arrays and attributes by rank 0, the
+    per-particle datasets by row blocks (parjam.rowio), so that no rank holds the packing's N
+    rows: /particles/all from each rank's file rows ``rows`` (rowio.read_rows), the
+    non-rattlers' ids from the distributed ``system`` moved to their home rows.  The
+    eigenvectors, when asked for, are the (K, N', d) array spectrum.compute gathered on rank 0
+    (in particle-id order); they are written in pieces from there."""
+    mpi = as_mpi(comm)
+    ids, _ = rowio.home_rows(mpi, rows.n, system.ids if system.distributed else
+                             system.active[slice(*active.row_block(len(system.active), mpi))])
+    want = mpi.bcast(spec.vectors is not None, root=0)
+    vectors = None
+    if want:
+        vectors = (spec.vectors if mpi.Get_rank() == 0 else
+                   np.zeros((len(spec.eigenvalue), 0, system.d)))
+    nbytes = spectrum_bytes(rows, system, len(spec.eigenvalue) if want else 0)
+    with rowio.rows_file(mpi, path, nbytes) as out:
+        out.meta(write_modes, lambda: (spec, mode_attrs(spec, system, rows.path, prov.get(
+            "ranks", 1)), dos, prov, rows.d, rows.L))
+        rowio.write_particle_rows(out, rows)
+        out.rows("modes/active_particles", ids)
+        if want:
+            out.rows("modes/eigenvector", vectors, axis=1)
+
+
+def spectrum_bytes(rows, system, n_vectors):
+    """The size of a spectrum file's per-particle data (the reservation of rowio.rows_file)."""
+    return rows.n * (8 * rows.d + 8 + 4) + 8 * system.n * (1 + n_vectors * system.d)
+
+
+def write_modes(f, spec, attrs, dos, prov, d, L):
+    """Everything but the per-particle rows: header, the box, /modes per-mode arrays and
+    attributes, /dos."""
+    io.write_h5md_header(f, prov)
+    io.particles_header(f, d, L)
+    g = f.create_group("modes")
+    for key, val in attrs.items():
+        g.attrs[key] = val
+    # omega in units of 1/tau, tau = sigma sqrt(m / epsilon) with unit masses m = 1
+    g.create_dataset("eigenvalue", data=spec.eigenvalue).attrs["unit"] = io.fixed_string("tau-2")
+    g.create_dataset("frequency", data=spec.frequency).attrs["unit"] = io.fixed_string("tau-1")
+    g.create_dataset("error", data=spec.error)
+    g.create_dataset("participation_ratio", data=spec.participation_ratio)
+    g.create_dataset("eps_perp", data=spec.eps_perp)
+    g.create_dataset("eps_par", data=spec.eps_par)
+    rej = g.create_group("rejected")
+    rej.create_dataset("eigenvalue", data=spec.rejected_eigenvalue)
+    rej.create_dataset("error", data=spec.rejected_error)
+    write_dos(f, dos)
 
 
 def write_dos(f, dos):

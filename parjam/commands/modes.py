@@ -94,11 +94,11 @@ def run(args):
     outputs.check(comm, files=[("--out", p) for p in output_paths(args.out, args.matrix).values()]
                   + [("--plot", args.plot)], inputs=[args.packing])
     progress = Progress(comm.tompi4py(), args.quiet, "modes: ")
-    # this rank's rows only (parjam.active); rank 0 re-reads the file to write it (modes_io)
-    system = spectrum.distributed_system(rowio.network(comm, args.packing))
+    # this rank's rows of the file only (parjam.rowio), kept for the output's /particles/all
+    rows = rowio.read_rows(comm, args.packing)
+    system = spectrum.distributed_system(rowio.network(comm, rows))
     progress(f"N' = {system.n} non-rattlers ({system.n_rattlers} rattlers), "
              f"{system.n_contacts} contacts, d = {system.d}")
-    system.gather_active(comm)  # rank 0: the non-rattlers' ids, written with the modes
     prov = io.provenance(comm.getSize(), {"command": "modes"})
     paths = output_paths(args.out, args.matrix)
     code = 0
@@ -108,7 +108,7 @@ def run(args):
                                 method=args.method, tol=args.tol, target=args.target,
                                 vectors=args.vectors, progress=progress)
         dos = dos_or_none(spec, system, args)
-        outputs.on_root(comm, lambda: write(paths[kind], spec, system, args.packing, dos, prov))
+        write(comm, paths[kind], spec, system, rows, dos, prov)  # collective, by row blocks
         if rank == 0:
             print(summary_line(kind, spec, dos), flush=True)
             report_problems(kind, spec)
@@ -149,10 +149,10 @@ def flag_undefined(dos, kind):
     return dos
 
 
-def write(path, spec, system, packing, dos, prov):
+def write(comm, path, spec, system, rows, dos, prov):
     empty = {"omega": np.zeros(0), "edges": np.zeros(0), "density": np.zeros(0),
              "note": "no positive frequency"}
-    modes_io.write_spectrum(path, spec, system, packing, dos or empty, prov)
+    modes_io.write_spectrum(comm, path, spec, system, rows, dos or empty, prov)
 
 
 def report_problems(kind, spec):
