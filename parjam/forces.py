@@ -20,6 +20,7 @@ the communicator.
 import numpy as np
 
 from parjam import env, hessian, kernels
+from parjam.domain import send_rows
 from parjam.engine import SlabEngine
 from parjam.logevents import ASSEMBLY, FORCE, HALO, REBUILD, event
 from parjam.system import min_image, neighbour_pairs_touching, pair_geometry, wrap
@@ -65,6 +66,14 @@ class ForceField:
     def set_positions(self, pos):
         """Scatter full positions (same array on every rank) into the distributed Vec."""
         self.x.array[:] = pos[self.lo:self.hi].ravel()
+
+    def set_rows(self, ids, x):
+        """Positions ``x`` of the particles ``ids`` (any rows of any rank, each particle on one
+        rank) handed to their block rows of the Vec (collective; no rank holds all N)."""
+        ranges = np.asarray(self.x.getOwnershipRanges()) // self.d
+        dest = np.searchsorted(ranges, ids, side="right") - 1
+        _, got = send_rows(self.comm, dest, ids, {"x": np.asarray(x, dtype=np.float64)})
+        self.x.array[:] = got["x"].ravel()
 
     def wrap(self):
         """Fold the owned positions back into [0, L)."""

@@ -28,11 +28,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, minimize, potential, stability
+from parjam import env, jamnet, minimize, stability
 from parjam.errors import ParjamError, UnjammedError
 from parjam.forces import ForceField
 from parjam.logstage import log_stage
-from parjam.network import analyze
 from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW,
                              DEFAULT_FTOL, DEFAULT_PHI_START, DEFAULT_RATIO)
 from parjam.system import Packing, sphere_volume
@@ -218,8 +217,16 @@ class Jammer:
         self.ff.n_force_calls += record["force_calls"]
         return res
 
+    def network(self):
+        """The current state's contact network (parjam.jamnet) from the force field's block
+        rows, on the slabs: no rank gathers the positions for it (collective)."""
+        ff = self.ff
+        return jamnet.build(self.comm, ff.local(ff.x), ff.diam[ff.lo:ff.hi],
+                            np.arange(ff.lo, ff.hi, dtype=np.int64), ff.L, self.pack.alpha,
+                            self.pack.eps)
+
     def pressure(self):
-        return analyze(self.pack).pressure
+        return self.network().pressure
 
     def state(self, res, label, **info):
         return State(self.pack.copy(), res, label, info)
@@ -243,12 +250,12 @@ class Jammer:
         cycle is undone)."""
         with log_stage("pack: stability"):
             phi = self.pack.phi if phi is None else phi
-            net = analyze(self.pack)
+            net = self.network()
             tol = self.balance_tol(net)
             if res.ok and net.max_force > tol:
                 res = self.polish(res, tol)
-                net = analyze(self.pack)
-            first = stability.check(self.comm, self.pack, net)
+                net = self.network()
+            first = stability.check(self.comm, net)
             res, cur, escapes, lowest = self.escape(res, first, net, e_stop)
             cycles = 0
             for factor in CYCLE_FACTORS:
@@ -258,7 +265,7 @@ class Jammer:
                 cycles += 1
                 res, cur = self.compression_cycle(phi, factor, e_stop)
                 if not cur.stable and res.status != "unjammed" and cur.n_active > 0:
-                    res, cur, more, _ = self.escape(res, cur, analyze(self.pack), e_stop)
+                    res, cur, more, _ = self.escape(res, cur, self.network(), e_stop)
                     escapes += more
                 if not cur.stable:  # undo the cycle: the flagged state is the escapes' one
                     self.pack, res, cur = kept
@@ -281,24 +288,23 @@ class Jammer:
         escapes, lowest curvature found)."""
         lowest, escapes = np.nan, 0
         while not cur.stable and escapes < MAX_ESCAPES and cur.n_active > 0:
-            direction, lam = stability.softest_direction(self.comm, self.pack, cur, net)
+            direction, lam = stability.softest_direction(self.comm, net, cur)
             lowest = lam if escapes == 0 else lowest
             if direction is None:
                 break
             self._log(f"saddle: {cur.n_negative} negative curvature(s) (lowest {lam:.2e}), "
                       f"Nc - Nc_iso = {cur.excess}: escape {escapes + 1}")
-            candidates = stability.escape_candidates(self.pack, direction)
-            for pos in candidates[:MAX_ESCAPES - escapes]:
-                self.pack.pos = pos
-                self.ff.set_positions(pos)
+            saddle = net.state  # the candidates' positions: owned rows of the saddle
+            for t in stability.escape_candidates(net, direction)[:MAX_ESCAPES - escapes]:
+                self.ff.set_rows(saddle.ids, stability.moved(saddle, direction, t))
                 res = self.relax(None, e_stop)
                 if res.ok:
-                    res = self.polish(res, self.balance_tol(analyze(self.pack)))
+                    res = self.polish(res, self.balance_tol(self.network()))
                 escapes += 1
                 if res.status == "unjammed":
                     break
-                net = analyze(self.pack)
-                cur = stability.check(self.comm, self.pack, net)
+                net = self.network()
+                cur = stability.check(self.comm, net)
                 if cur.stable:
                     break
             if res.status == "unjammed":
@@ -318,19 +324,20 @@ class Jammer:
         res = self.relax_balanced(phi, e_stop)
         if res.status == "unjammed":
             return res, stability.Curvature(-1, 0.0, 0, 0)
-        return res, stability.check(self.comm, self.pack, analyze(self.pack))
+        return res, stability.check(self.comm, self.network())
 
     def virial_dphi(self):
         """phi - phi_c of the current state by the virial relation of its own contact network,
         alpha E phi / (p V) (O'Hern et al. 2003)."""
-        return self._virial_excess(analyze(self.pack).energy)
+        net = self.network()
+        return self._virial_excess(net.energy, net.pressure)
 
     def relax_balanced(self, phi=None, e_stop=-np.inf):
         """``relax``, then on to ``balance_tol`` where --ftol is loose against the contact forces
         (near jamming, and for alpha > 2 whose forces ~dphi^(alpha-1) fall below --ftol)."""
         res = self.relax(phi, e_stop)
         if res.ok:
-            res = self.polish(res, self.balance_tol(analyze(self.pack)))
+            res = self.polish(res, self.balance_tol(self.network()))
         return res
 
     def polish(self, res, tol):
@@ -355,9 +362,7 @@ class Jammer:
     def balance_tol(self, net):
         """Force tolerance of a returned state: --ftol, or REL_BALANCE of the mean contact force
         where that is tighter, floored at the forces' round-off level."""
-        c = net.contacts
-        k = float(np.mean(potential.d2V(c.r, c.sigma, self.pack.alpha, self.pack.eps))) \
-            if len(c) else 1.0
+        k = net.mean_stiffness if net.n_contacts else 1.0
         return min(self.settings.ftol, max(REL_BALANCE * net.mean_force, FORCE_FLOOR * k))
 
     def find_phi_c(self):
@@ -460,8 +465,9 @@ class Jammer:
         estimates = []
         jammed_phi = self.pack.phi
         for it in range(1, max_steps + 1):
-            energy = analyze(self.pack).energy
-            excess = self._virial_excess(energy)
+            net = self.network()
+            energy = net.energy
+            excess = self._virial_excess(energy, net.pressure)
             phi = self.pack.phi
             estimates.append(phi - excess)
             change = abs(estimates[-1] - estimates[-2]) if len(estimates) > 1 else np.inf
@@ -476,7 +482,7 @@ class Jammer:
             target = estimates[-1] + dphi
             e_stop = 1e-3 * energy * (dphi / excess) ** self.pack.alpha
             res = self.relax_balanced(target, e_stop=e_stop)
-            if res.status == "unjammed" or analyze(self.pack).n_active == 0:
+            if res.status == "unjammed" or self.network().n_active == 0:
                 # the network changed on the way (or only rattlers keep a few overlaps, forces
                 # below --ftol: alpha > 2): back to jammed_phi, smaller steps
                 res = self.relax_balanced(jammed_phi)
@@ -489,9 +495,10 @@ class Jammer:
         return {"phi_c": estimates[-1], "phi_c_resolution": resolution, "iterations": it,
                 "phi_c_estimates": np.array(estimates), "dphi_reached": excess, "result": res}
 
-    def _virial_excess(self, energy):
-        """phi - phi_c = alpha E phi / (p V) of a jammed state with a fixed contact network."""
-        p = self.pressure()
+    def _virial_excess(self, energy, p=None):
+        """phi - phi_c = alpha E phi / (p V) of a jammed state with a fixed contact network
+        (``p``: its pressure, default the current state's)."""
+        p = self.pressure() if p is None else p
         if p <= 0 or energy <= 0:
             raise UnjammedError(f"no pressure at phi = {self.pack.phi:.10f}", collective=False)
         return self.pack.alpha * energy * self.pack.phi / (p * self.pack.volume)
@@ -513,7 +520,7 @@ class Jammer:
         energy falls below ``e_stop`` (default: 1e-6 of the low end of the energy window)."""
         e_stop = self.settings.e_low * self.pack.n * 1e-6 if e_stop is None else e_stop
         res = self.relax_balanced(phi, e_stop=e_stop)
-        if res.status == "unjammed" or (res.ok and analyze(self.pack).n_active == 0):
+        if res.status == "unjammed" or (res.ok and self.network().n_active == 0):
             raise UnjammedError(f"unjammed at phi = {phi:.10f}: energy per particle reached "
                                 f"{res.energy / self.pack.n:.3e}", collective=False)
         if not res.ok:

@@ -16,15 +16,23 @@ eigenvector of the lowest non-translational eigenvalue (SLEPc Krylov-Schur with
 shift-and-invert at a target just below it, found from inertias, options prefix
 ``stability_``), which the packing protocol (parjam.packing) follows out of the saddle before
 minimising again.
+
+Everything is distributed (issue 18): the state is a parjam.jamnet.JamNetwork (each rank its
+slab of particles and the half-edges of their contacts), D is assembled from those half-edges
+into block rows [lo, hi) of the active numbering (hessian.assemble(rows=...)), the softest
+direction stays a distributed vector mapped back onto the owned particles, and the escape
+searches move the owned particles and sum the energies of their contacts (one allreduce per
+trial).  On one rank the matrix, its norm and every energy are the serial ones bitwise (the
+half-edges come in the serial order, parjam.jamnet), so the protocol takes the same path.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from parjam import env, factor, hessian, potential
-from parjam.network import analyze, find_contacts
-from parjam.system import wrap
+from parjam import env, factor, hessian, jamnet, potential
+from parjam.active import max_op, min_op
+from parjam.system import pair_separation, wrap
 
 SHIFT_ULPS = 100.0  # s = SHIFT_ULPS * eps_machine * ||D||_inf
 ESCAPE_MAX = 0.05  # escape searches stop at this displacement (in smallest diameters)
@@ -47,36 +55,34 @@ class Curvature:
 
 @dataclass
 class ActiveHessian:
-    """The full dynamical matrix of the non-rattlers, re-indexed 0..N'-1 (contacts among them)."""
+    """This rank's block rows [lo, hi) of the full dynamical matrix of the non-rattlers (active
+    numbers 0..N'-1), from the half-edges of a JamNetwork."""
 
     n: int
     d: int
-    active: np.ndarray  # original indices of the non-rattlers
-    i: np.ndarray
-    j: np.ndarray
+    edges: jamnet.ActiveEdges
     blocks: np.ndarray
-    norm: float  # ||D||_inf
+    norm: float  # ||D||_inf (global)
 
     def matrix(self, comm, shift=0.0):
-        lo, hi = hessian.row_range(self.n, comm)
-        mine = ((self.i >= lo) & (self.i < hi)) | ((self.j >= lo) & (self.j < hi))
-        return hessian.assemble(comm, self.n, self.d, self.i[mine], self.j[mine],
-                                self.blocks[mine], shift)
+        e = self.edges
+        return hessian.assemble(comm, self.n, self.d, e.i, e.j, self.blocks, shift,
+                                rows=(e.lo, e.hi))
 
 
-def active_hessian(pack, net=None):
-    net = net if net is not None else analyze(pack)
-    keep = ~net.rattler
-    index = np.cumsum(keep) - 1
-    c = net.contacts
-    blocks = hessian.contact_blocks(c.rij, c.r, c.sigma, pack.alpha, pack.eps, "full")
-    n = int(keep.sum())
-    # ||D||_inf <= 2 max_i sum_j ||K_ij||_inf (diagonal block plus the off-diagonal ones)
+def active_hessian(net):
+    """The ActiveHessian of a JamNetwork (collective: one allreduce for the norm)."""
+    e = net.active
+    blocks = hessian.contact_blocks(e.rij, e.r, e.sigma, net.alpha, net.eps, "full")
+    # ||D||_inf <= 2 max_i sum_j ||K_ij||_inf (diagonal block plus the off-diagonal ones); the
+    # row sums taken as the serial bincounts over (i, j) then over (j, i) take them
     rowsum = np.abs(blocks).sum(axis=2).max(axis=1) if len(blocks) else np.zeros(0)
-    per = (np.bincount(index[c.i], rowsum, minlength=n)
-           + np.bincount(index[c.j], rowsum, minlength=n)) if n else np.zeros(1)
-    return ActiveHessian(n, pack.d, np.nonzero(keep)[0], index[c.i], index[c.j], blocks,
-                         2.0 * float(per.max()) if len(per) else 0.0)
+    rows, m = e.i - e.lo, e.hi - e.lo
+    per = (np.bincount(rows[:e.n_up], rowsum[:e.n_up], minlength=m)
+           + np.bincount(rows[e.n_up:], rowsum[e.n_up:], minlength=m))
+    top = float(per.max()) if len(per) else 0.0
+    norm = net.state.comm.allreduce(top, op=max_op())
+    return ActiveHessian(e.n, net.d, e, blocks, 2.0 * norm)
 
 
 def shift_for(norm):
@@ -88,7 +94,7 @@ def count_below(comm, H, sigma):
     of D - sigma I; without MUMPS, dense LAPACK on every rank (small systems only)."""
     PETSc = env.petsc()
     if not env.has_mumps():
-        return _count_below_dense(H, sigma)
+        return count_below_dense(comm, H, sigma)
     A = H.matrix(comm, -sigma)
     ksp = PETSc.KSP().create(comm=comm)
     try:
@@ -105,47 +111,52 @@ def count_below(comm, H, sigma):
     return -1 if count is None else int(count)
 
 
-def _count_below_dense(H, sigma):
-    D = hessian.dense_hessian(H.n, H.d, H.i, H.j, H.blocks)
+def count_below_dense(comm, H, sigma):
+    """The dense fall-back of ``count_below`` (no MUMPS): every contact once (the half-edges
+    whose owned end has the lower id) gathered, LAPACK on every rank; small systems only."""
+    e, k = H.edges, H.edges.n_up
+    got = comm.tompi4py().allgather((e.i[:k], e.j[:k], H.blocks[:k]))
+    i, j, b = (np.concatenate(p) for p in zip(*got))
+    D = hessian.dense_hessian(H.n, H.d, i, j, b.reshape(-1, H.d, H.d))
     return int(np.sum(np.linalg.eigvalsh(D) < sigma))
 
 
-def check(comm, pack, net=None):
-    """Curvature of the current state (collective on comm; every rank passes the same pack)."""
-    net = net if net is not None else analyze(pack)
+def check(comm, net):
+    """Curvature of the state of JamNetwork ``net`` (collective on comm)."""
     if net.n_active == 0:
         return Curvature(0, 0.0, net.excess, 0)
-    H = active_hessian(pack, net)
+    H = active_hessian(net)
     s = shift_for(H.norm)
     return Curvature(count_below(comm, H, -s), s, net.excess, net.n_active)
 
 
-def softest_direction(comm, pack, curvature, net=None):
-    """(N, d) unit-max-norm displacement along the lowest non-translational eigenvector of the
-    active Hessian (zero on rattlers), and its eigenvalue; (None, nan) if SLEPc does not find
-    it.  The target lies below the lowest eigenvalue (from inertias at -s, -10 s, -100 s ...),
-    so the eigenvalue nearest it is the lowest."""
-    net = net if net is not None else analyze(pack)
-    H = active_hessian(pack, net)
+def softest_direction(comm, net, curvature):
+    """Displacement of the owned particles (rows of ``net.state``) along the lowest
+    non-translational eigenvector of the active Hessian, zero on rattlers, scaled to a largest
+    particle displacement of 1 over all ranks, and its eigenvalue; (None, nan) if SLEPc does
+    not find it.  The target lies below the lowest eigenvalue (from inertias at -s, -10 s,
+    -100 s ...), so the eigenvalue nearest it is the lowest."""
+    H = active_hessian(net)
     s = curvature.shift
     target = -s
     if curvature.n_negative > 0:
         target = -10.0 * s
         while count_below(comm, H, target) > 0 and target > -1e6 * max(H.norm, 1.0):
             target *= 10.0
-    vec, lam = _nearest_mode(comm, H, target)
+    vec, lam = nearest_mode(comm, H, target)
     if vec is None:
         return None, np.nan
-    out = np.zeros((pack.n, pack.d))
-    out[H.active] = vec.reshape(H.n, H.d)
+    out = np.zeros((len(net.state.ids), net.d))
+    out[~net.rattler] = vec.reshape(-1, net.d)
     norms = np.sqrt(np.einsum("ij,ij->i", out, out))
-    return out / norms.max(), lam
+    top = net.state.comm.allreduce(float(norms.max()) if len(norms) else 0.0, op=max_op())
+    return out / top, lam
 
 
-def _nearest_mode(comm, H, target):
-    """Eigenpair of the active Hessian nearest ``target``, translations deflated (on every rank:
-    the full vector)."""
-    PETSc, SLEPc = env.petsc(), env.slepc()
+def nearest_mode(comm, H, target):
+    """Eigenpair of the active Hessian nearest ``target``, translations deflated: this rank's
+    rows [lo, hi) of the eigenvector (a copy) and the eigenvalue."""
+    SLEPc = env.slepc()
     A = H.matrix(comm)
     deflation = []
     for a in range(H.d):
@@ -174,11 +185,8 @@ def _nearest_mode(comm, H, target):
             return None, np.nan
         xr = A.createVecRight()
         lam = eps.getEigenpair(0, xr).real
-        scatter, full = PETSc.Scatter.toAll(xr)
-        scatter.scatter(xr, full, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
-        vec = np.array(full.array_r)
-        for obj in (scatter, full, xr):
-            obj.destroy()
+        vec = np.array(xr.array_r)
+        xr.destroy()
         return vec, float(lam)
     finally:
         eps.destroy()
@@ -187,8 +195,14 @@ def _nearest_mode(comm, H, target):
         A.destroy()
 
 
-def escape_candidates(pack, direction):
-    """Positions to leave a saddle from, along ``direction`` (unit max-norm), best first:
+def moved(state, direction, t):
+    """The owned rows of ``state`` displaced by t * direction, wrapped into the box."""
+    return wrap(state.x + t * direction, state.L)
+
+
+def escape_candidates(net, direction):
+    """Displacements t along ``direction`` (owned rows of ``net.state``, unit max-norm) to
+    leave a saddle from, best first:
 
     - on each side, the displacement where the first new contact closes (geometric search, then
       bisection to round-off): a saddle blocked by a near-contact (Nc = Nc_iso - 1, a gap of
@@ -197,21 +211,17 @@ def escape_candidates(pack, direction):
       double precision holds it as a contact of a few ulps, balanced to far below --ftol;
     - the lowest energy along the line (doubling steps, then golden section): a saddle whose
       descent is not blocked nearby.
-    Sides are ordered by the energy at their new contact."""
-    lim = ESCAPE_MAX * float(pack.diam.min())
-    base = _pair_set(pack, pack.pos)
-
-    def moved(t):
-        return wrap(pack.pos + t * direction, pack.L)
-
-    def energy(t):
-        c = find_contacts(_with(pack, moved(t)))
-        return float(potential.energy(c.r, c.sigma, pack.alpha, pack.eps).sum())
-
+    Sides are ordered by the energy at their new contact.  Every trial moves the owned
+    particles, hands them to their slabs and evaluates their contacts there (collective).
+    ``moved(net.state, direction, t)`` gives the positions of a candidate."""
+    st = net.state
+    dmin = st.comm.allreduce(float(st.diam.min()) if len(st.diam) else np.inf, op=min_op())
+    lim = ESCAPE_MAX * dmin
+    trials = LineTrials(st, direction, net.alpha, net.eps)
     touch = []
     for sign in (1.0, -1.0):
         t_lo, t = 0.0, 1e-15
-        while t <= lim and not (_pair_set(pack, moved(sign * t)) - base):
+        while t <= lim and not trials.new_contact(sign * t):
             t_lo, t = t, 2.0 * t
         if t > lim:
             continue
@@ -220,24 +230,45 @@ def escape_candidates(pack, direction):
             mid = 0.5 * (t_lo + t_hi)
             if mid in (t_lo, t_hi):
                 break
-            if _pair_set(pack, moved(sign * mid)) - base:
+            if trials.new_contact(sign * mid):
                 t_hi = mid
             else:
                 t_lo = mid
-        touch.append((energy(sign * t_hi), moved(sign * t_hi)))
+        touch.append((trials.energy(sign * t_hi), sign * t_hi))
     touch.sort(key=lambda c: c[0])
-    return [pos for _, pos in touch] + [moved(_line_minimum(energy, lim))]
+    return [t for _, t in touch] + [_line_minimum(trials.energy, lim)]
 
 
-def _with(pack, pos):
-    p = pack.copy()
-    p.pos = pos
-    return p
+class LineTrials:
+    """Energies and new contacts of a state displaced along a direction: the owned rows moved,
+    migrated to their slabs (with their unmoved positions along), and their contacts there."""
 
+    def __init__(self, state, direction, alpha, eps):
+        self.state, self.direction = state, direction
+        self.alpha, self.eps = alpha, eps
 
-def _pair_set(pack, pos):
-    c = find_contacts(_with(pack, pos))
-    return set(zip(c.i.tolist(), c.j.tolist()))
+    def _contacts(self, t):
+        st = self.state
+        x, ids, f = st.dom.migrate(moved(st, self.direction, t), st.ids,
+                                   {"diam": st.diam, "base": st.x})
+        here = jamnet.SlabState(st.comm, st.dom, st.L, x, ids, f["diam"], st.cutoff)
+        edges, halo, _, once = jamnet.contact_edges(here)
+        return edges.subset(once), halo, f["base"]
+
+    def energy(self, t):
+        """Total energy at displacement t (each contact once, summed over the ranks)."""
+        c, _, _ = self._contacts(t)
+        e = potential.energy(c.r, c.sigma, self.alpha, self.eps).sum()
+        return float(self.state.comm.allreduce(e))
+
+    def new_contact(self, t):
+        """Whether some contact at displacement t was not one at t = 0 (the same separation
+        test as the contacts themselves, on the unmoved positions)."""
+        c, halo, base = self._contacts(t)
+        pts = np.concatenate([base, halo.pull(base)])
+        rij = pair_separation(pts[c.i], pts[c.j], self.state.dom.L)
+        r0 = np.sqrt(np.einsum("ij,ij->i", rij, rij))
+        return bool(self.state.comm.allreduce(int(np.any(r0 >= c.sigma)), op=max_op()))
 
 
 def _line_minimum(energy, lim):

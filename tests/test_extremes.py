@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
-from parjam import env, hessian, io, network, packing, stability
+from parjam import env, hessian, io, jamnet, network, packing, stability
 from parjam.errors import ParjamError
 from parjam.minimize import MinResult
 from parjam.packing import Jammer, make_jammed
@@ -50,10 +50,18 @@ def test_pressure_proportional_to_dphi(ladder):
     assert slope == pytest.approx(1.0, abs=0.01)
 
 
-def _dense_negatives(pack, shift):
+def dense_active_hessian(pack):
+    """The serial dense D of the non-rattlers (active numbers in particle order) and their
+    particle indices: the reference of the distributed stability check."""
     net = network.analyze(pack)
-    H = stability.active_hessian(pack, net)
-    D = hessian.dense_hessian(H.n, H.d, H.i, H.j, H.blocks)
+    c = network.active_contacts(net)
+    blocks = hessian.contact_blocks(c.rij, c.r, c.sigma, pack.alpha, pack.eps, "full")
+    n = net.n_active
+    return hessian.dense_hessian(n, pack.d, c.i, c.j, blocks), np.flatnonzero(~net.rattler)
+
+
+def _dense_negatives(pack, shift):
+    D, _ = dense_active_hessian(pack)
     return int(np.sum(np.linalg.eigvalsh(D) < -shift))
 
 
@@ -63,14 +71,14 @@ def saddle_from(pack):
     network is hypostatic with a floppy mode (Nc = Nc_iso - 2): the stress term of Eq. (1)
     gives that mode a negative curvature ~ -p, a saddle."""
     net = network.analyze(pack)
-    H = stability.active_hessian(pack, net)
-    D = hessian.dense_hessian(H.n, H.d, H.i, H.j, H.blocks)
-    Dd = D.reshape(H.n, H.d, H.n, H.d).copy()
-    for a in range(H.d):  # translations moved above the spectrum
-        Dd[:, a, :, a] += 10.0 / H.n
-    lam, vec = np.linalg.eigh(Dd.reshape(H.n * H.d, -1))
+    D, active = dense_active_hessian(pack)
+    n, d = len(active), pack.d
+    Dd = D.reshape(n, d, n, d).copy()
+    for a in range(d):  # translations moved above the spectrum
+        Dd[:, a, :, a] += 10.0 / n
+    lam, vec = np.linalg.eigh(Dd.reshape(n * d, -1))
     v = np.zeros((pack.n, pack.d))
-    v[H.active] = vec[:, 0].reshape(H.n, H.d)
+    v[active] = vec[:, 0].reshape(n, d)
     c = net.contacts
     deg = np.bincount(c.i, minlength=pack.n) + np.bincount(c.j, minlength=pack.n)
     rate = np.einsum("ij,ij->i", v[c.j] - v[c.i], c.rij / c.r[:, None])  # d r_ij / dt
@@ -90,12 +98,12 @@ def saddle_from(pack):
 def test_saddle_detected_and_relaxed(ladder, world):
     d, (phi_c, packs) = ladder
     stable = packs[1]  # dphi = 1e-8
-    s0 = stability.check(world, stable)
+    s0 = stability.check(world, jamnet.from_packing(world, stable))
     assert s0.stable and s0.n_negative == _dense_negatives(stable, s0.shift) == 0
     saddle = saddle_from(stable)
     net = network.analyze(saddle)
     assert net.excess < 0
-    cur = stability.check(world, saddle, net)
+    cur = stability.check(world, jamnet.from_packing(world, saddle))
     assert not cur.stable
     assert cur.n_negative == _dense_negatives(saddle, cur.shift) >= 1  # MUMPS inertia vs LAPACK
     jam = Jammer(PETSc.COMM_SELF, saddle)  # (a shared FIRE run costs minutes in the MPI pass)
