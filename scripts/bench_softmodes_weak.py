@@ -99,8 +99,9 @@ def run(code, path, p, pythonpath, timeout):
                OPENBLAS_NUM_THREADS="1", OMPI_MCA_rmaps_base_oversubscribe="1")
     out = subprocess.run(mpirun + ["-n", str(p), PYTHON, "-c", DRIVER, code, path],
                          capture_output=True, text=True, env=env, cwd="/tmp", timeout=timeout)
-    if out.returncode:
-        sys.exit(f"{code} P={p} failed:\n{out.stderr[-3000:]}")
+    if out.returncode:  # recorded, not hidden: the page shows the error line
+        errors = [ln.strip() for ln in out.stderr.splitlines() if "Error" in ln]
+        return {"failed": errors[-1] if errors else out.stderr[-300:]}
     line = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")][-1]
     return json.loads(line[len("RESULT "):])
 
@@ -135,6 +136,9 @@ def page(res, ranks, per_rank, made, base):
     for p in ranks:
         for code in ("old", "new"):
             r = res[(p, code)]
+            if "failed" in r:
+                lines.append(f"| {p} | | | | | {code} | failed: {r['failed']} |")
+                continue
             peaks = [x["peak"] for x in r["ranks"]]
             basis = r["n_active"] * d * r["n_soft"] * 8 / 2**20 / p
             rest = max(peaks) - basis
@@ -149,7 +153,9 @@ def page(res, ranks, per_rank, made, base):
                 f"{(rest - factor) / first[code][2]:.2f} | {r['seconds_prepare']:.1f} | "
                 f"{r['seconds_analyze']:.1f} |")
     lines += ["", "new / old at each P (max rank): before, peak, rest:", ""]
-    for p in ranks:
+    ok = [p for p in ranks if "failed" not in res[(p, "old")] and "failed" not in
+          res[(p, "new")]]
+    for p in ok:
         o, n = res[(p, "old")], res[(p, "new")]
         ob, nb = (max(x["before"] for x in r["ranks"]) for r in (o, n))
         op, np_ = (max(x["peak"] for x in r["ranks"]) for r in (o, n))
@@ -158,7 +164,7 @@ def page(res, ranks, per_rank, made, base):
                      f"{(np_ - basis) / (op - basis):.2f}")
     lines += ["", "Agreement old against new (count equal; max |difference| of the extension "
               "spectrum e and of f(x)):", ""]
-    for p in ranks:
+    for p in ok:
         o, n = res[(p, "old")], res[(p, "new")]
         same = "equal" if o["count"] == n["count"] else "DIFFERENT"
         de = np.abs(np.subtract(o["e"], n["e"])).max()
@@ -196,9 +202,10 @@ def main(argv=None):
             for code in ("old", "new"):
                 res[(p, code)] = r = run(code, path, p, old if code == "old" else ROOT,
                                          args.timeout)
-                print(f"P={p} {code}: N'={r['n_active']} n_soft={r['n_soft']} peak "
+                print(f"P={p} {code}: " + (r["failed"] if "failed" in r else
+                      f"N'={r['n_active']} n_soft={r['n_soft']} peak "
                       f"{max(x['peak'] for x in r['ranks']):.0f} MB, "
-                      f"{r['seconds_analyze']:.1f} s", flush=True)
+                      f"{r['seconds_analyze']:.1f} s"), flush=True)
             saved[p] = {"old": res[(p, "old")], "new": res[(p, "new")]}
             with open(store, "w") as fh:
                 json.dump(saved, fh)
