@@ -190,7 +190,8 @@ def main(argv=None):
     saved = {}
     if args.reuse and os.path.exists(store):
         with open(store) as fh:
-            saved = {int(k): v for k, v in json.load(fh).items()}
+            saved = {int(k): v for k, v in json.load(fh).items()
+                     if not any("failed" in r for r in v.values())}  # failed: run again
     res, made = {}, {}
     with tempfile.TemporaryDirectory(prefix="parjam-weak-") as tmp:
         old = old_tree(args.base, tmp)
