@@ -18,6 +18,9 @@ Built on parjam.domain's slabs (issue 19):
    block rows [lo, hi) of every operator; the ghosts' numbers come by one pull.  This numbering
    is *not* the serial one (sorted by particle id) unless P = 1; ``ids`` maps it back.
 
+The owned particles' wrapped positions stay on the network (``pos``, ``active_pos`` for the
+active rows) for the analyses that need a row's position (softmodes' cuts and f(x)).
+
 Global numbers (N', Nc, Nc_iso, pressure, stress, energy, forces) are allreduced sums of the
 half-edges (each contact counted with weight 1/2); nothing of length N or Nc is gathered.
 Conventions and the paper's definitions are parjam.network's (module doc there).

@@ -102,7 +102,7 @@ from parjam.testing import softmodes_reference as ref
 env.init()
 path, basis_file = sys.argv[1], sys.argv[2]
 pack = io.read_packing(path)
-cs = sm.prepare(pack, [sm.Plane(0, 0.5)], allow_hyperstatic=True)
+cs = sm.prepare(pack, [sm.Plane(0, 0.5)], allow_hyperstatic=True).gathered()  # one rank
 t0 = time.perf_counter()
 S = ref.dense_rigidity(cs, cs.kept)
 if basis_file != "-":  # count and basis: the same job as parjam

@@ -75,6 +75,19 @@ def test_rows_are_a_parallel_reindex(name):
     assert np.allclose(np.linalg.norm(c.unit, axis=1), 1.0)
 
 
+@pytest.mark.parametrize("name", PACKINGS[:2])
+def test_owned_positions_are_the_wrapped_packing_positions(name):
+    """``pos`` holds every owned particle's wrapped position (rows of ``owned_ids``),
+    ``active_pos`` those of the active rows lo..hi-1 (particles ``ids``)."""
+    pack = read_packing(os.path.join(DATA, name))
+    net = active.from_packing(COMM, pack)
+    wrapped = np.mod(pack.pos, pack.L)
+    assert net.pos.shape == (len(net.owned_ids), pack.d)
+    assert np.array_equal(net.pos, wrapped[net.owned_ids])
+    assert np.array_equal(net.active_pos, wrapped[net.ids])
+    assert COMM.allreduce(len(net.pos)) == pack.n
+
+
 def test_unjammed_every_particle_a_rattler():
     """A dilute packing: no contacts, every particle a rattler, N' = 0 on every rank."""
     rng = np.random.default_rng(4)

@@ -84,7 +84,9 @@ class SoftModes:
 
 def analyze(comm, cs, e0=0.1, nbins=10, progress=None, basis="block",
             columns=COLUMNS_DEFAULT, scratch=None):
-    """Count, extract and characterise the soft modes of the cut system ``cs``; ``basis``
+    """Count, extract and characterise the soft modes of the cut system ``cs`` (made on
+    ``comm``'s ranks; one prepared from a packing on another communicator is cut again on
+    ``comm``, :func:`parjam.softmodes.cut.bound_to`); ``basis``
     chooses the null-space method and ``columns`` its column blocks (None: one block,
     :func:`parjam.softmodes.nullspace.null_basis`).  ``scratch``: a
     :class:`parjam.softmodes.scratch.ScratchSpace` (from :func:`scratch_space`) keeps the basis

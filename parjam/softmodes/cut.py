@@ -84,8 +84,8 @@ class CutSystem:
     distributed active network ``net`` (global active numbers, i owned) and the cut flag of
     each.  Global numbers are fields, computed collectively by :func:`cut_system`."""
 
-    net: object  # parjam.active.ActiveNetwork
-    is_cut: np.ndarray  # mask over the half-edges ``contacts``
+    net: object = field(repr=False)  # parjam.active.ActiveNetwork
+    is_cut: np.ndarray = field(repr=False)  # mask over the half-edges ``contacts``
     planes: list
     per_plane: list  # q of each plane (a contact may count for several)
     q: int  # cut contacts among the non-rattlers (half-edge count / 2)
@@ -93,7 +93,8 @@ class CutSystem:
     z_max: int  # largest number of contacts of a particle, uncut
     kappa: float  # max_contacts V''(r) r^2 (1 in the paper's units)
     scale: float  # mean stiffness V''(r) of the kept contacts
-    source: object = None  # the Packing the network was built from (None: read by rows)
+    source: object = field(default=None, repr=False)  # the Packing the network was built
+    #                                                   from (None: read by rows)
 
     # --- this rank's share
     @property
