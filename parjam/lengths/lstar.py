@@ -20,7 +20,10 @@ finds which of its owned non-rattlers (parjam.lengths.sites) lie in each cube of
 sends them, and the half-edges leaving them (parjam.active), to the cube's rank with one
 ``parjam.domain.send_rows`` each.  A rank so holds its own N/P particles plus the members of one
 cube at a time, never all N positions or all contacts; the counts are identical to a count on
-one rank (members in particle-id order, contacts in (i, j) order).
+one rank (members in particle-id order, contacts in (i, j) order).  A cube of edge l holds
+about (l / L)^d N' particles on its rank: cubes of a few l* are small, but an edge of the order
+of L (the default edges reach L) brings a large part of the packing to one rank; for large
+packings give edges in units of l* (``--edges``).
 """
 
 from dataclasses import dataclass
@@ -28,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from parjam import env, potential
-from parjam.domain import send_rows
+from parjam.domain import as_mpi, send_rows
 from parjam.errors import ParjamError
 from parjam.lengths import cubes
 from parjam.lengths.sites import build as build_sites
@@ -176,7 +179,7 @@ def lstar(comm, source, ells, *, samples=8, seed=0, progress=None, e0=None, exte
     (module doc); ``source`` is a packing every rank holds, a rowio.Rows or a
     parjam.lengths.sites.Sites.  The counts are gathered on every rank."""
     PETSc = env.petsc()
-    mpi = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
+    mpi = as_mpi(comm)
     sites = build_sites(mpi, source)
     net = sites.net
     if net.n_active == 0 or net.excess < 0:
