@@ -34,12 +34,12 @@ import sys
 import tempfile
 import time
 
-import h5py
 import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NEW = os.path.join(ROOT, ".venv", "bin", "parjam")
 PY = os.path.join(ROOT, ".venv", "bin", "python")
+sys.path.insert(0, ROOT)
 PARTS = ("lstar", "structure", "speeds")
 
 
@@ -62,11 +62,11 @@ def peak_rss(exe, args, ranks):
 
 
 def box(path):
-    """(N, L, mean diameter) of a packing file (small metadata and one column)."""
-    with h5py.File(path, "r") as f:
-        diam = f["particles/all/diameter"][...]
-        edge = f["particles/all/box/edges"][...]
-    return len(diam), float(np.ravel(edge)[0]), float(diam.mean())
+    """(N, L, mean diameter) of a packing file (read by the driver, not measured)."""
+    from parjam import io
+
+    pack = io.read_packing(path)
+    return pack.n, float(pack.L), float(pack.diam.mean())
 
 
 def arguments(part, L, sigma, args):
