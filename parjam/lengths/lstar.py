@@ -148,8 +148,8 @@ def local_index(num, ends):
 
 
 def gather_cube(comm, sites, x0, ell, dest):
-    """Send the owned non-rattlers inside the cube [x0, x0 + ell)^d and the half-edges leaving
-    them to rank ``dest`` (collective).  Returns, on that rank, the members' positions in
+    """Send the owned non-rattlers inside the cube [x0, x0 + ell)^d and all their half-edges
+    to rank ``dest`` (collective).  Returns, on that rank, the members' positions in
     particle-id order, their internal contacts (local indices, i < j, sorted; r_ij from the end
     with the smaller id, as the serial network's) and the number of contacts leaving the cube;
     None elsewhere."""
