@@ -33,7 +33,7 @@ import numpy as np
 from parjam import env, potential
 from parjam.domain import as_mpi, send_rows
 from parjam.errors import ParjamError
-from parjam.lengths import cubes
+from parjam.lengths.cubes import count_cube, cube_members
 from parjam.lengths.sites import build as build_sites
 from parjam.network import Contacts
 
@@ -154,7 +154,7 @@ def gather_cube(comm, sites, x0, ell, dest):
     with the smaller id, as the serial network's) and the number of contacts leaving the cube;
     None elsewhere."""
     net, pos = sites.net, sites.pos
-    rows = np.flatnonzero(cubes.cube_members(pos, sites.L, x0, ell))
+    rows = np.flatnonzero(cube_members(pos, sites.L, x0, ell))
     _, got = send_rows(comm, np.full(len(rows), dest), net.ids[rows],
                        {"pos": pos[rows], "num": net.lo + rows})
     c = net.contacts
@@ -202,10 +202,10 @@ def lstar(comm, source, ells, *, samples=8, seed=0, progress=None, e0=None, exte
             cube = (t, e, s, got) if got is not None else cube
         if cube is not None:
             t, e, s, (pos, internal, leaving) = cube
-            mine.append((t, cubes.count_cube(
-                pos, internal, leaving, L, corners[e, s], ells[e], alpha=net.alpha,
-                eps=net.eps, scale=scale, comm_self=PETSc.COMM_SELF,
-                e0=e0 if extended else None)))
+            mine.append((t, count_cube(pos, internal, leaving, L, corners[e, s], ells[e],
+                                       alpha=net.alpha, eps=net.eps, scale=scale,
+                                       comm_self=PETSc.COMM_SELF,
+                                       e0=e0 if extended else None)))
     everything = sorted(sum(mpi.allgather(mine), []), key=lambda x: x[0])
     failed = sum(x[1].null < 0 for x in everything)
     if progress is not None:
