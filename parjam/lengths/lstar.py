@@ -20,7 +20,10 @@ finds which of its owned non-rattlers (parjam.lengths.sites) lie in each cube of
 sends them, and the half-edges leaving them (parjam.active), to the cube's rank with one
 ``parjam.domain.send_rows`` each.  A rank so holds its own N/P particles plus the members of one
 cube at a time, never all N positions or all contacts; the counts are identical to a count on
-one rank (members in particle-id order, contacts in (i, j) order).
+one rank (members in particle-id order, contacts in (i, j) order).  A cube of edge l holds
+about (l / L)^d N' particles on its rank: cubes of a few l* are small, but an edge of the order
+of L (the default edges reach L) brings a large part of the packing to one rank; for large
+packings give edges in units of l* (``--edges``).
 """
 
 from dataclasses import dataclass
@@ -28,9 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from parjam import env, potential
-from parjam.domain import send_rows
+from parjam.domain import as_mpi, send_rows
 from parjam.errors import ParjamError
-from parjam.lengths import cubes
+from parjam.lengths.cubes import count_cube, cube_members
 from parjam.lengths.sites import build as build_sites
 from parjam.network import Contacts
 
@@ -145,13 +148,13 @@ def local_index(num, ends):
 
 
 def gather_cube(comm, sites, x0, ell, dest):
-    """Send the owned non-rattlers inside the cube [x0, x0 + ell)^d and the half-edges leaving
-    them to rank ``dest`` (collective).  Returns, on that rank, the members' positions in
+    """Send the owned non-rattlers inside the cube [x0, x0 + ell)^d and all their half-edges
+    to rank ``dest`` (collective).  Returns, on that rank, the members' positions in
     particle-id order, their internal contacts (local indices, i < j, sorted; r_ij from the end
     with the smaller id, as the serial network's) and the number of contacts leaving the cube;
     None elsewhere."""
     net, pos = sites.net, sites.pos
-    rows = np.flatnonzero(cubes.cube_members(pos, sites.L, x0, ell))
+    rows = np.flatnonzero(cube_members(pos, sites.L, x0, ell))
     _, got = send_rows(comm, np.full(len(rows), dest), net.ids[rows],
                        {"pos": pos[rows], "num": net.lo + rows})
     c = net.contacts
@@ -176,7 +179,7 @@ def lstar(comm, source, ells, *, samples=8, seed=0, progress=None, e0=None, exte
     (module doc); ``source`` is a packing every rank holds, a rowio.Rows or a
     parjam.lengths.sites.Sites.  The counts are gathered on every rank."""
     PETSc = env.petsc()
-    mpi = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
+    mpi = as_mpi(comm)
     sites = build_sites(mpi, source)
     net = sites.net
     if net.n_active == 0 or net.excess < 0:
@@ -199,10 +202,10 @@ def lstar(comm, source, ells, *, samples=8, seed=0, progress=None, e0=None, exte
             cube = (t, e, s, got) if got is not None else cube
         if cube is not None:
             t, e, s, (pos, internal, leaving) = cube
-            mine.append((t, cubes.count_cube(
-                pos, internal, leaving, L, corners[e, s], ells[e], alpha=net.alpha,
-                eps=net.eps, scale=scale, comm_self=PETSc.COMM_SELF,
-                e0=e0 if extended else None)))
+            mine.append((t, count_cube(pos, internal, leaving, L, corners[e, s], ells[e],
+                                       alpha=net.alpha, eps=net.eps, scale=scale,
+                                       comm_self=PETSc.COMM_SELF,
+                                       e0=e0 if extended else None)))
     everything = sorted(sum(mpi.allgather(mine), []), key=lambda x: x[0])
     failed = sum(x[1].null < 0 for x in everything)
     if progress is not None:
