@@ -290,8 +290,11 @@ class RowFile:
         return self.comm.Get_rank() == 0
 
     def raise_collective(self, problem):
-        if not self.parallel and self.comm.Get_size() > 1:
-            problem = self.comm.bcast(problem, root=0)
+        """Raise rank 0's problem (only rank 0 writes) or, with the mpio driver, the first
+        rank's, on every rank."""
+        if self.comm.Get_size() > 1:
+            problem = (next((p for p in self.comm.allgather(problem) if p), None)
+                       if self.parallel else self.comm.bcast(problem, root=0))
         if problem:
             raise ParjamError(problem if problem.startswith(self.path) else
                               f"{self.path}: {problem}")
@@ -331,15 +334,15 @@ class RowFile:
             self.send(block, axis)
             self.raise_collective(None)
 
-    def pieces(self, block, axis):
-        """(first row, rows) of the pieces of at most ``chunk_bytes`` a block is sent in."""
-        n = block.shape[axis]
-        per_row = max(block.nbytes // max(n, 1), 1)
-        step = max(self.chunk_bytes // per_row, 1)
+    def pieces(self, n, row_bytes):
+        """(first row, rows) of the pieces of at most ``chunk_bytes`` that n rows of
+        ``row_bytes`` each are sent in (at least one row per piece)."""
+        step = max(self.chunk_bytes // max(row_bytes, 1), 1)
         return [(a, min(step, n - a)) for a in range(0, n, step)]
 
     def send(self, block, axis):
-        for a, m in self.pieces(block, axis):
+        row_bytes = block.itemsize * int(np.prod(block.shape)) // max(block.shape[axis], 1)
+        for a, m in self.pieces(block.shape[axis], row_bytes):
             piece = np.ascontiguousarray(np.take(block, np.arange(a, a + m), axis=axis))
             self.comm.Send(piece, dest=0, tag=7)
 
@@ -347,15 +350,15 @@ class RowFile:
         """Rank 0: create the dataset, write its own block, then each rank's pieces in turn;
         after a failed write it still receives everything (no rank is left blocked)."""
         problem = problem_of(self.create, name, shape, block.dtype, attrs)
+        other = shape[:axis] + shape[axis + 1:]
+        row_bytes = block.itemsize * int(np.prod(other))
         start = 0
         for r, count in enumerate(counts):
-            shape_r = block.shape[:axis] + (count,) + block.shape[axis + 1:]
-            template = np.empty(shape_r, dtype=block.dtype)
-            for a, m in self.pieces(template, axis):
+            for a, m in self.pieces(count, row_bytes):
                 if r == 0:
                     piece = np.take(block, np.arange(a, a + m), axis=axis)
                 else:
-                    piece = np.empty(shape_r[:axis] + (m,) + shape_r[axis + 1:], block.dtype)
+                    piece = np.empty(shape[:axis] + (m,) + shape[axis + 1:], block.dtype)
                     self.comm.Recv(piece, source=r, tag=7)
                 if problem is None:
                     problem = problem_of(self.put, name, axis, start + a, piece)
@@ -415,6 +418,17 @@ def rows_file(comm, path, nbytes, chunk_bytes=CHUNK_BYTES):
     out.raise_collective(problem)
 
 
+def check_space(path, nbytes):
+    """ParjamError ``PATH: cannot write (No space left on device)`` when the file system of
+    ``path`` (its nearest existing directory) has less than ``nbytes`` free."""
+    directory = os.path.dirname(outputs.target(path))
+    while directory and not os.path.isdir(directory):
+        directory = os.path.dirname(directory)
+    st = os.statvfs(directory or ".")
+    if st.f_bavail * st.f_frsize < nbytes:
+        raise ParjamError(f"{path}: cannot write ({os.strerror(errno.ENOSPC)})")
+
+
 @contextlib.contextmanager
 def parallel_file(comm, path, nbytes):
     """The mpio driver (h5py built with MPI): every rank opens rank 0's temporary name; rank 0
@@ -424,13 +438,10 @@ def parallel_file(comm, path, nbytes):
     stack = contextlib.ExitStack()
     if comm.Get_rank() == 0:
         try:
+            check_space(path, nbytes + HEADROOM_BYTES)
             tmp = stack.enter_context(outputs.atomic_path(path))
-            st = os.statvfs(os.path.dirname(outputs.target(path)))
-            if st.f_bavail * st.f_frsize < nbytes + HEADROOM_BYTES:
-                raise ParjamError(f"{path}: cannot write ({os.strerror(errno.ENOSPC)})")
         except ParjamError as exc:
             problem = str(exc)
-            stack.close()
     tmp, problem = comm.bcast((tmp, problem), root=0)
     if problem:
         raise ParjamError(problem)

@@ -185,3 +185,13 @@ def test_blocks_that_disagree_are_refused(where):
             out.rows("a", np.zeros((2, 3 + COMM.rank)))
     COMM.Barrier()
     assert os.listdir(where) == []
+
+
+def test_space_check_of_the_mpio_path(where):
+    """The mpio path (h5py built with MPI, not this machine's: that path itself cannot run
+    here) checks the free space of the nearest existing directory before HDF5 creates the
+    file."""
+    rowio.check_space(os.path.join(where, "not", "yet", "x.h5"), 1)
+    with pytest.raises(ParjamError, match=r"x\.h5: cannot write \(No space left on device\)"):
+        rowio.check_space(os.path.join(where, "not", "yet", "x.h5"), 1 << 62)
+    assert not os.path.exists(os.path.join(where, "not"))
