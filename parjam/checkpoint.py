@@ -97,9 +97,13 @@ class Checkpoint:
         due = time.monotonic() - self._written >= self.every if self.mpi.Get_rank() == 0 else None
         return self.mpi.bcast(due, root=0)
 
-    def finish(self, call, pack, result, force_calls):
-        """Minimisation ``call`` ended in ``pack`` with ``result``; written when due."""
-        self.done.append({"pos": pack.pos.copy(), "L": float(pack.L), "result": result,
+    def finish(self, call, ff, L, result, force_calls):
+        """Minimisation ``call`` ended at the positions of force field ``ff`` (box edge ``L``)
+        with ``result``; written when due (collective: the positions are gathered, the one
+        place a finished minimisation needs all N of them)."""
+        pos = np.array(ff.gather())
+        ff.drop_gather()
+        self.done.append({"pos": pos, "L": float(L), "result": result,
                           "force_calls": int(force_calls)})
         self.pending = None
         if self._due():
