@@ -173,7 +173,7 @@ class Jammer:
             ck.discard_from(call)
             record = None
         if record is not None:
-            return self._replay(record)
+            return self._replay(call, record)
         if phi is not None:
             self.rescale(phi)
         calls_before = self.ff.n_force_calls
@@ -240,15 +240,12 @@ class Jammer:
                   f"{state.fire.step} of round {state.round})")
         return state
 
-    def _set_state(self, pos, L):
-        """Box and positions of the force field (a new box drops the neighbour list)."""
-        self.ff.set_box(L)
-        self.ff.set_positions(pos)
-
-    def _replay(self, record):
-        """A minimisation of an earlier run, from its checkpoint record."""
+    def _replay(self, call, record):
+        """A minimisation of an earlier run, from its checkpoint record (collective: each rank
+        receives its block rows of the positions)."""
         self.L = record["L"]
-        self._set_state(record["pos"], self.L)
+        self.ff.set_box(self.L)
+        self.checkpoint.replay_rows(call, self.ff)
         res = record["result"]
         self.total_fire += res.fire_steps
         self.total_newton += res.newton_steps
