@@ -35,13 +35,15 @@ class ForceField:
         PETSc = env.petsc()
         self.comm = comm
         self.mpi = comm.tompi4py()
-        self.diam = np.asarray(diam, dtype=np.float64)
-        self.n = len(self.diam)
+        diam = np.asarray(diam, dtype=np.float64)  # all N (before any minimisation), not kept
+        self.n = len(diam)
         self.d = d
         self.alpha = alpha
         self.eps = eps
-        self.skin = 0.2 * self.diam.min() if skin is None else skin
+        self.dmin, self.dmax = float(diam.min()), float(diam.max())
+        self.skin = 0.2 * self.dmin if skin is None else skin
         self.lo, self.hi = hessian.row_range(self.n, comm)
+        self.diam_rows = np.array(diam[self.lo:self.hi])  # the diameters of the block rows
         self.x = PETSc.Vec().createMPI(((self.hi - self.lo) * d, self.n * d), bsize=d, comm=comm)
         self.scatter = self.xall = None  # the gather to all ranks, made when asked (gather)
         self.engine = None  # the SlabEngine while FIRE runs (start_engine)
@@ -55,9 +57,9 @@ class ForceField:
 
     def set_box(self, L):
         self.L = float(L)
-        cut = self.diam.max() + self.skin
+        cut = self.dmax + self.skin
         if self.L <= 2.0 * cut:
-            self.skin = max(0.0, 0.49 * self.L - self.diam.max())
+            self.skin = max(0.0, 0.49 * self.L - self.dmax)
         self.pairs = None
 
     def vec(self):
@@ -119,7 +121,7 @@ class ForceField:
         (or given the full positions ``pos``) the compiled cell search over all of them; on
         several, ``slab_pairs``: no rank gathers the positions."""
         with event(REBUILD):
-            cut = self.diam.max() + self.skin
+            cut = self.dmax + self.skin
             if pos is None and self.comm.getSize() > 1:
                 self.pairs = self.slab_pairs(cut)
             else:
@@ -168,14 +170,14 @@ class ForceField:
             self.halo_x.destroy()
             self.halo_scatter = self.halo_x = None
         if self.comm.getSize() == 1:
-            self.halo_i, self.halo_j, self.halo_diam = self.pairs_i, self.pairs_j, self.diam
+            self.halo_i, self.halo_j, self.halo_diam = self.pairs_i, self.pairs_j, self.diam_rows
             self.halo_lo, self.halo_hi = 0, self.n
             return
         need = np.union1d(np.arange(self.lo, self.hi, dtype=np.int64),
                           np.concatenate([self.pairs_i, self.pairs_j]))
         self.halo_i = np.ascontiguousarray(np.searchsorted(need, self.pairs_i), dtype=np.int64)
         self.halo_j = np.ascontiguousarray(np.searchsorted(need, self.pairs_j), dtype=np.int64)
-        self.halo_diam = np.ascontiguousarray(self.diam[need])
+        self.halo_diam = self.rows_of(need)
         self.halo_lo = int(np.searchsorted(need, self.lo))
         self.halo_hi = self.halo_lo + (self.hi - self.lo)
         index = PETSc.IS().createBlock(self.d, need.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
@@ -183,6 +185,21 @@ class ForceField:
                                             comm=PETSc.COMM_SELF)
         self.halo_scatter = PETSc.Scatter().create(self.x, index, self.halo_x, None)
         index.destroy()
+
+    def rows_of(self, need):
+        """Diameters of the particles ``need`` (sorted global ids), fetched from their block
+        rows (collective; one VecScatter)."""
+        PETSc = env.petsc()
+        dv = PETSc.Vec().createMPI((self.hi - self.lo, self.n), comm=self.comm)
+        dv.array[:] = self.diam_rows
+        index = PETSc.IS().createGeneral(need.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+        out = PETSc.Vec().createSeq(len(need), comm=PETSc.COMM_SELF)
+        sc = PETSc.Scatter().create(dv, index, out, None)
+        sc.scatter(dv, out, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+        got = np.array(out.array_r)
+        for obj in (sc, out, index, dv):
+            obj.destroy()
+        return got
 
     def _halo_positions(self):
         """Positions of the halo particles (collective on several ranks), (n_halo, d)."""
@@ -201,11 +218,12 @@ class ForceField:
         checkpoint (parjam.checkpoint) then reaches the same minimum bitwise."""
         self.pairs = None
 
-    def contacts(self, pos):
-        """Pairs touching owned particles that overlap: (i, j, r_ij, r, sigma), at the full
-        positions ``pos`` (small systems: minimize's force scale)."""
-        self._update_pairs(pos)
-        rij, r, sigma = pair_geometry(pos, self.L, self.diam, self.pairs)
+    def contacts(self):
+        """Pairs touching owned particles that overlap: (i, j, r_ij, r, sigma), from the halo
+        positions (minimize's force scale)."""
+        self._update_pairs()
+        rij, r, sigma = pair_geometry(self._halo_positions(), self.L, self.halo_diam,
+                                      np.stack([self.halo_i, self.halo_j], axis=1))
         c = r < sigma
         return self.pairs[c, 0], self.pairs[c, 1], rij[c], r[c], sigma[c]
 
@@ -230,7 +248,7 @@ class ForceField:
         x = np.array(self.x.array_r).reshape(-1, self.d)
         self.engine = SlabEngine(self.comm, self.L, self.alpha, self.eps, self.skin, x,
                                  np.arange(self.lo, self.hi, dtype=np.int64),
-                                 self.diam[self.lo:self.hi], v_block)
+                                 self.diam_rows, v_block)
         return self.engine
 
     def block_rows(self, values):

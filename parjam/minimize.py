@@ -230,8 +230,7 @@ def minimize(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_
 
 def _force_scale(ff):
     """Mean contact force magnitude |V'(r)| over all contacts (0 if there are none)."""
-    pos = ff.gather()
-    i, j, rij, r, sigma = ff.contacts(pos)
+    i, j, rij, r, sigma = ff.contacts()
     own = (i >= ff.lo) & (i < ff.hi)
     tot = ff.mpi.allreduce(np.abs(potential.dV(r[own], sigma[own], ff.alpha, ff.eps)).sum())
     cnt = ff.mpi.allreduce(int(own.sum()))

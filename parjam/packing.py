@@ -101,6 +101,11 @@ def spatial_order(pos, L, cell):
     return np.argsort(key, kind="stable")
 
 
+def per_particle(value, n):
+    """Whether a metadata value is a per-particle array (n rows)."""
+    return isinstance(value, np.ndarray) and value.ndim >= 1 and len(value) == n
+
+
 class LadderUnjammed(UnjammedError):
     """A step of the dphi ladder (or of the target pressures) unjammed: ``states`` are the
     jammed states made before it, ``step`` the dphi (or pressure) that unjammed.  The steps
@@ -145,11 +150,15 @@ class Jammer:
         # the state: positions only in the force field's block rows (no rank keeps all N of
         # them between FIRE and the file, ``packing_for_file``); box, diameters and constants
         self.n, self.d, self.L = pack.n, pack.d, pack.L
-        self.alpha, self.eps, self.meta = pack.alpha, pack.eps, dict(pack.meta)
-        self.diam = pack.diam.copy()
-        self.sphere_volume = sphere_volume(self.diam, self.d).sum()
-        self.ff = ForceField(comm, self.diam, pack.L, pack.d, pack.alpha, pack.eps)
+        self.alpha, self.eps = pack.alpha, pack.eps
+        self.sphere_volume = sphere_volume(pack.diam, self.d).sum()
+        self.ff = ForceField(comm, pack.diam, pack.L, pack.d, pack.alpha, pack.eps)
         self.ff.set_positions(pack.pos)
+        # per-particle metadata (species) kept as the block rows, like the diameters
+        lo, hi = self.ff.lo, self.ff.hi
+        self.meta = {k: (np.array(v[lo:hi]) if per_particle(v, self.n) else v)
+                     for k, v in pack.meta.items()}
+        self.row_meta = {k for k, v in pack.meta.items() if per_particle(v, self.n)}
         self.total_fire = 0
         self.total_newton = 0
         # minimiser steps: a line every 10 s at most (only long minimisations show them)
@@ -220,7 +229,14 @@ class Jammer:
         field's block rows.  The gather buffer is freed at once."""
         pos = np.array(self.ff.gather())
         self.ff.drop_gather()
-        return Packing(pos, self.diam.copy(), self.L, self.alpha, self.eps, dict(self.meta))
+        meta = {k: (self.gather_rows(v) if k in self.row_meta else v)
+                for k, v in self.meta.items()}
+        return Packing(pos, self.gather_rows(self.ff.diam_rows), self.L, self.alpha, self.eps,
+                       meta)
+
+    def gather_rows(self, rows):
+        """Per-particle values of the block rows, all N of them on every rank (for the file)."""
+        return np.concatenate(self.comm.tompi4py().allgather(np.asarray(rows)))
 
     @property
     def pack(self):
@@ -256,7 +272,7 @@ class Jammer:
         """The current state's contact network (parjam.jamnet) from the force field's block
         rows, on the slabs: no rank gathers the positions for it (collective)."""
         ff = self.ff
-        return jamnet.build(self.comm, ff.local(ff.x), ff.diam[ff.lo:ff.hi],
+        return jamnet.build(self.comm, ff.local(ff.x), ff.diam_rows,
                             np.arange(ff.lo, ff.hi, dtype=np.int64), ff.L, self.alpha, self.eps)
 
     def pressure(self):

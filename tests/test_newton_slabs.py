@@ -40,7 +40,7 @@ def test_slab_pairs_are_the_cell_search(name):
     pack = perturbed(name)
     ff = field(PETSc.COMM_WORLD, pack)
     try:
-        cut = ff.diam.max() + ff.skin
+        cut = ff.dmax + ff.skin
         got = ff.slab_pairs(cut)
         want = kernels.cell_pairs(wrap(pack.pos, pack.L), pack.L, cut, ff.lo, ff.hi)
         if want is None:  # no compiled library: the k-d tree's pairs
