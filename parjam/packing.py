@@ -18,6 +18,13 @@ recorded with every state.  Every returned state is also checked to be a stable 
 minimised again, or else taken through a compression cycle (``stabilise``).  A ladder step that
 unjams ends the ladder with ``LadderUnjammed``, which carries the jammed states made before it.
 
+On the decomposition (issue 18): the Jammer holds the state in its force field's PETSc block
+rows (positions, diameters, species of this rank's rows; box and constants), never all N of
+them.  Every per-state number comes from parjam.jamnet on the slabs (``network``), the stability
+check and the escapes from parjam.stability on the same half-edges, Newton from the force
+field's distributed neighbour list; ``packing_for_file`` is the one gather, for the States whose
+files parjam.ensemble writes.  On one rank every number is the serial one bitwise.
+
 (Over 500 lines: the Jammer is one state machine over one force field and its checkpoint; every
 minimisation, the escapes' and the cycles' included, goes through its checkpointed ``relax``, so
 they are its methods; the stability test itself and the escape searches live in
