@@ -14,7 +14,16 @@ a resumed run follows the uninterrupted trajectory bitwise, on one rank.
 
 The file (``DIR/.checkpoint/memberMMMM.h5``) is rewritten atomically by rank 0 of the member's
 group at most every ``every`` seconds (and not at all with ``every <= 0``), and removed when the
-member's results are written.  It records the run's parameters and parjam's version and is
+member's results are written.
+
+Memory (issue 18): only rank 0 holds the finished minimisations' positions (N x d each): it
+writes them, and the file is written atomically from an in-memory HDF5 image (parjam.outputs'
+policy: a full disk never leaves a partial file), so the writer holds the whole image at a write
+anyway; streaming it block by block would need an append-only checkpoint format.  A finished
+minimisation's positions reach rank 0 one rank's block at a time (``finish``); on resume each
+rank receives only its block rows of a replayed record (``replay_rows``).  A snapshot of a
+minimisation in progress gathers positions and velocities (parjam.fire's state) for the write
+and drops them after it.  It records the run's parameters and parjam's version and is
 ignored (with a note) if they differ; a record whose volume fraction is not the one the protocol
 asks for ends the replay there.
 """
@@ -64,13 +73,34 @@ class Checkpoint:
             else:
                 if data["params"] != self.params:
                     data, note = None, f"checkpoint {self.path} is of other parameters: ignored"
-        data, note = self.mpi.bcast((data, note), root=0)
+        root = self.mpi.Get_rank() == 0
+        # the other ranks get the records without their positions (replay_rows sends them)
+        meta = None if data is None else {
+            "done": [{k: v for k, v in rec.items() if k != "pos"} for rec in data["done"]],
+            "pending": data["pending"]}
+        meta, note = self.mpi.bcast((meta, note), root=0)
         if note and progress is not None:
             progress(note)
-        if data is None:
+        if meta is None:
             return False
-        self.done, self.pending = data["done"], data["pending"]
+        self.done = data["done"] if root else meta["done"]
+        self.pending = meta["pending"]
         return True
+
+    def replay_rows(self, call, ff):
+        """Set the positions of force field ``ff`` to those of finished minimisation ``call``:
+        rank 0 sends each rank its block rows (collective)."""
+        ranges = np.asarray(ff.x.getOwnershipRanges()) // ff.d
+        mine = ff.local(ff.x)
+        if self.mpi.Get_rank() == 0:
+            pos = self.done[call]["pos"]
+            for r in range(1, self.mpi.Get_size()):
+                self.mpi.Send(np.ascontiguousarray(pos[ranges[r]:ranges[r + 1]]), dest=r)
+            mine[:] = pos[ranges[0]:ranges[1]]
+        else:
+            rows = np.empty_like(mine)
+            self.mpi.Recv(rows, source=0)
+            mine[:] = rows
 
     def finished(self, call):
         """The record of minimisation number ``call`` if it finished before, else None."""
@@ -97,9 +127,11 @@ class Checkpoint:
         due = time.monotonic() - self._written >= self.every if self.mpi.Get_rank() == 0 else None
         return self.mpi.bcast(due, root=0)
 
-    def finish(self, call, pack, result, force_calls):
-        """Minimisation ``call`` ended in ``pack`` with ``result``; written when due."""
-        self.done.append({"pos": pack.pos.copy(), "L": float(pack.L), "result": result,
+    def finish(self, call, ff, L, result, force_calls):
+        """Minimisation ``call`` ended at the positions of force field ``ff`` (box edge ``L``)
+        with ``result``; written when due (collective: the positions go to rank 0, one rank's
+        block rows at a time; the other ranks keep the record without them)."""
+        self.done.append({"pos": self.rows_to_root(ff), "L": float(L), "result": result,
                           "force_calls": int(force_calls)})
         self.pending = None
         if self._due():
@@ -117,8 +149,25 @@ class Checkpoint:
             self.pending = {"call": call, "pos": pos, "L": float(L), "state": make_state(),
                             "force_calls": ff.n_force_calls - calls_before}
             self.write()
+            # written: a later write either finishes this minimisation or snapshots it anew
+            self.pending = None
+            ff.drop_gather()
 
         return hook
+
+    def rows_to_root(self, ff):
+        """The positions of ``ff`` on rank 0 as an (N, d) array, received one rank's block rows
+        at a time (collective); None on the other ranks."""
+        mine = np.ascontiguousarray(ff.local(ff.x))
+        if self.mpi.Get_rank() != 0:
+            self.mpi.Send(mine, dest=0)
+            return None
+        ranges = np.asarray(ff.x.getOwnershipRanges()) // ff.d
+        pos = np.empty((ff.n, ff.d))
+        pos[ranges[0]:ranges[1]] = mine
+        for r in range(1, self.mpi.Get_size()):
+            self.mpi.Recv(pos[ranges[r]:ranges[r + 1]], source=r)
+        return pos
 
     def write(self):
         """Write the checkpoint now (group rank 0; collective: every rank of the group calls it)."""

@@ -4,13 +4,15 @@
 FIRE does not run here: parjam.fire hands the positions to a ``parjam.engine.SlabEngine``
 (``start_engine``), which spreads the particles over the slabs of the spatial decomposition and
 keeps no array of length N on any rank; at the end (``stop_engine``) they come back to the Vec.
-What needs the whole configuration (Newton's Hessian, file writing, checkpoints) gathers it
-lazily, when asked (``gather``; the gather buffer is dropped when FIRE starts again).
+What needs the whole configuration (the packing file, checkpoints, the force scale of small
+systems) gathers it lazily, when asked (``gather``; callers drop the buffer after use).
 
-For Newton and single evaluations, positions are gathered when the Verlet list is rebuilt;
-each rank then searches the pairs that touch its particles (linked cells in compiled code,
-kernels.cell_pairs; in a box of fewer than 3 cells a side a k-d tree of its block and the shell
-around it) and computes the forces on them only.  Between rebuilds a force evaluation fetches
+For Newton and single evaluations the Verlet list holds the pairs that touch a rank's block
+rows: on one rank from linked cells in compiled code (kernels.cell_pairs; in a box of fewer
+than 3 cells a side a k-d tree), on several from the slabs of parjam.domain (``slab_pairs``:
+the block rows visit their slabs, one ghost exchange, each pair back to the block rows of its
+ends), so no rank gathers the positions; each rank computes the forces on its particles only
+and assembles its rows of Newton's Hessian from the halo positions.  Between rebuilds a force evaluation fetches
 just the positions of the particles those pairs touch (its own and a halo of ghosts, one
 VecScatter).  Forces on a particle are summed over its pairs in global (i, j) order, so they
 are bitwise independent of the number of ranks.  Scalars (energy, max |F|) are reduced over
@@ -20,7 +22,7 @@ the communicator.
 import numpy as np
 
 from parjam import env, hessian, kernels
-from parjam.domain import send_rows
+from parjam.domain import SlabDomain, send_rows
 from parjam.engine import SlabEngine
 from parjam.logevents import ASSEMBLY, FORCE, HALO, REBUILD, event
 from parjam.system import min_image, neighbour_pairs_touching, pair_geometry, wrap
@@ -33,13 +35,15 @@ class ForceField:
         PETSc = env.petsc()
         self.comm = comm
         self.mpi = comm.tompi4py()
-        self.diam = np.asarray(diam, dtype=np.float64)
-        self.n = len(self.diam)
+        diam = np.asarray(diam, dtype=np.float64)  # all N (before any minimisation), not kept
+        self.n = len(diam)
         self.d = d
         self.alpha = alpha
         self.eps = eps
-        self.skin = 0.2 * self.diam.min() if skin is None else skin
+        self.dmin, self.dmax = float(diam.min()), float(diam.max())
+        self.skin = 0.2 * self.dmin if skin is None else skin
         self.lo, self.hi = hessian.row_range(self.n, comm)
+        self.diam_rows = np.array(diam[self.lo:self.hi])  # the diameters of the block rows
         self.x = PETSc.Vec().createMPI(((self.hi - self.lo) * d, self.n * d), bsize=d, comm=comm)
         self.scatter = self.xall = None  # the gather to all ranks, made when asked (gather)
         self.engine = None  # the SlabEngine while FIRE runs (start_engine)
@@ -53,9 +57,9 @@ class ForceField:
 
     def set_box(self, L):
         self.L = float(L)
-        cut = self.diam.max() + self.skin
+        cut = self.dmax + self.skin
         if self.L <= 2.0 * cut:
-            self.skin = max(0.0, 0.49 * self.L - self.diam.max())
+            self.skin = max(0.0, 0.49 * self.L - self.dmax)
         self.pairs = None
 
     def vec(self):
@@ -107,24 +111,54 @@ class ForceField:
         moved = np.einsum("ij,ij->i", disp, disp).max() if len(disp) else 0.0
         return self.mpi.allreduce(moved, op=_max()) >= (0.5 * self.skin) ** 2
 
-    def _update_pairs(self, pos):
-        if self._stale(pos[self.lo:self.hi]):
+    def _update_pairs(self, pos=None):
+        own = self.local(self.x) if pos is None else pos[self.lo:self.hi]
+        if self._stale(own):
             self._rebuild(pos)
 
-    def _rebuild(self, pos):
-        """Verlet list at the full positions ``pos`` (collective), and the halo for it."""
+    def _rebuild(self, pos=None):
+        """Verlet list at the current positions (collective), and the halo for it.  On one rank
+        (or given the full positions ``pos``) the compiled cell search over all of them; on
+        several, ``slab_pairs``: no rank gathers the positions."""
         with event(REBUILD):
-            cut = self.diam.max() + self.skin
-            # linked cells in compiled code; the k-d tree when the box holds < 3 cells a side
-            self.pairs = kernels.cell_pairs(wrap(np.asarray(pos), self.L), self.L, cut,
-                                            self.lo, self.hi)
-            if self.pairs is None:
-                self.pairs = neighbour_pairs_touching(pos, self.L, cut, self.lo, self.hi)
+            cut = self.dmax + self.skin
+            if pos is None and self.comm.getSize() > 1:
+                self.pairs = self.slab_pairs(cut)
+            else:
+                pos = self.local(self.x) if pos is None else pos
+                # linked cells in compiled code; the k-d tree when the box holds < 3 cells a side
+                self.pairs = kernels.cell_pairs(wrap(np.asarray(pos), self.L), self.L, cut,
+                                                self.lo, self.hi)
+                if self.pairs is None:
+                    self.pairs = neighbour_pairs_touching(pos, self.L, cut, self.lo, self.hi)
             self.pairs_i = np.ascontiguousarray(self.pairs[:, 0])
             self.pairs_j = np.ascontiguousarray(self.pairs[:, 1])
-            self.ref_own = np.array(pos[self.lo:self.hi])
+            self.ref_own = np.array(self.local(self.x) if pos is None else pos[self.lo:self.hi])
             self.n_rebuilds += 1
             self._build_halo()
+
+    def slab_pairs(self, cut):
+        """The pairs (i < j) closer than ``cut`` with an end in this rank's block rows, in
+        (i, j) order, as the cell search lists them, found on the slabs of parjam.domain: the
+        block rows go to their slabs, one ghost exchange, the pairs of owned particles and
+        ghosts, and each pair back to the block rows of both its ends (collective; O(N/P))."""
+        ids = np.arange(self.lo, self.hi, dtype=np.int64)
+        xw = wrap(np.array(self.local(self.x)), self.L)
+        dom = SlabDomain.balanced(self.mpi, self.L, xw)
+        xs, gs, _ = dom.migrate(xw, ids)
+        halo = dom.halo(xs, gs, cut)
+        found = dom.neighbour_pairs(xs, halo, cut)
+        gid = np.concatenate([gs, halo.ids])
+        a, b = gid[found[:, 0]], gid[found[:, 1]]
+        i, j = np.minimum(a, b), np.maximum(a, b)
+        ranges = np.asarray(self.x.getOwnershipRanges()) // self.d
+        oi = np.searchsorted(ranges, i, side="right") - 1
+        oj = np.searchsorted(ranges, j, side="right") - 1
+        two = oj != oi
+        key = np.concatenate([i, i[two]]) * self.n + np.concatenate([j, j[two]])
+        got, _ = send_rows(self.mpi, np.concatenate([oi, oj[two]]), key)
+        key = np.unique(got)  # a pair across slabs is found on both
+        return np.stack([key // self.n, key % self.n], axis=1)
 
     def _build_halo(self):
         """The particles this rank's pairs touch, sorted (its own form the contiguous block
@@ -136,14 +170,14 @@ class ForceField:
             self.halo_x.destroy()
             self.halo_scatter = self.halo_x = None
         if self.comm.getSize() == 1:
-            self.halo_i, self.halo_j, self.halo_diam = self.pairs_i, self.pairs_j, self.diam
+            self.halo_i, self.halo_j, self.halo_diam = self.pairs_i, self.pairs_j, self.diam_rows
             self.halo_lo, self.halo_hi = 0, self.n
             return
         need = np.union1d(np.arange(self.lo, self.hi, dtype=np.int64),
                           np.concatenate([self.pairs_i, self.pairs_j]))
         self.halo_i = np.ascontiguousarray(np.searchsorted(need, self.pairs_i), dtype=np.int64)
         self.halo_j = np.ascontiguousarray(np.searchsorted(need, self.pairs_j), dtype=np.int64)
-        self.halo_diam = np.ascontiguousarray(self.diam[need])
+        self.halo_diam = self.rows_of(need)
         self.halo_lo = int(np.searchsorted(need, self.lo))
         self.halo_hi = self.halo_lo + (self.hi - self.lo)
         index = PETSc.IS().createBlock(self.d, need.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
@@ -151,6 +185,21 @@ class ForceField:
                                             comm=PETSc.COMM_SELF)
         self.halo_scatter = PETSc.Scatter().create(self.x, index, self.halo_x, None)
         index.destroy()
+
+    def rows_of(self, need):
+        """Diameters of the particles ``need`` (sorted global ids), fetched from their block
+        rows (collective; one VecScatter)."""
+        PETSc = env.petsc()
+        dv = PETSc.Vec().createMPI((self.hi - self.lo, self.n), comm=self.comm)
+        dv.array[:] = self.diam_rows
+        index = PETSc.IS().createGeneral(need.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+        out = PETSc.Vec().createSeq(len(need), comm=PETSc.COMM_SELF)
+        sc = PETSc.Scatter().create(dv, index, out, None)
+        sc.scatter(dv, out, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+        got = np.array(out.array_r)
+        for obj in (sc, out, index, dv):
+            obj.destroy()
+        return got
 
     def _halo_positions(self):
         """Positions of the halo particles (collective on several ranks), (n_halo, d)."""
@@ -169,10 +218,12 @@ class ForceField:
         checkpoint (parjam.checkpoint) then reaches the same minimum bitwise."""
         self.pairs = None
 
-    def contacts(self, pos):
-        """Pairs touching owned particles that overlap: (i, j, r_ij, r, sigma)."""
-        self._update_pairs(pos)
-        rij, r, sigma = pair_geometry(pos, self.L, self.diam, self.pairs)
+    def contacts(self):
+        """Pairs touching owned particles that overlap: (i, j, r_ij, r, sigma), from the halo
+        positions (minimize's force scale)."""
+        self._update_pairs()
+        rij, r, sigma = pair_geometry(self._halo_positions(), self.L, self.halo_diam,
+                                      np.stack([self.halo_i, self.halo_j], axis=1))
         c = r < sigma
         return self.pairs[c, 0], self.pairs[c, 1], rij[c], r[c], sigma[c]
 
@@ -181,7 +232,7 @@ class ForceField:
         """Write the forces on owned particles into Vec f; return the total energy."""
         self.n_force_calls += 1
         if self._stale(self.x.array_r.reshape(-1, self.d)):
-            self._rebuild(self.gather())
+            self._rebuild()
         pos = self._halo_positions()
         with event(FORCE):
             e_local = kernels.pair_forces(self.halo_i, self.halo_j, pos, self.halo_diam, self.L,
@@ -197,7 +248,7 @@ class ForceField:
         x = np.array(self.x.array_r).reshape(-1, self.d)
         self.engine = SlabEngine(self.comm, self.L, self.alpha, self.eps, self.skin, x,
                                  np.arange(self.lo, self.hi, dtype=np.int64),
-                                 self.diam[self.lo:self.hi], v_block)
+                                 self.diam_rows, v_block)
         return self.engine
 
     def block_rows(self, values):
@@ -244,13 +295,15 @@ class ForceField:
         neighbour-list rebuilds the same Mat is refilled in place and a factorisation of it can
         reuse its symbolic phase (ordering and analysis).
         """
-        pos = self.gather()
-        self._update_pairs(pos)
+        self._update_pairs()
+        pos = self._halo_positions()  # this rank's particles and their neighbours: no gather
         with event(ASSEMBLY):
             return self._assemble_hessian(pos, shift, kind)
 
     def _assemble_hessian(self, pos, shift, kind):
-        rij, r, sigma = pair_geometry(pos, self.L, self.diam, self.pairs)
+        """The Hessian from the halo positions ``pos`` (the pairs renumbered into the halo)."""
+        rij, r, sigma = pair_geometry(pos, self.L, self.halo_diam,
+                                      np.stack([self.halo_i, self.halo_j], axis=1))
         touch = r < sigma
         blocks = np.zeros((len(r), self.d, self.d))
         blocks[touch] = hessian.contact_blocks(rij[touch], r[touch], sigma[touch], self.alpha,

@@ -198,7 +198,8 @@ def minimize(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_
         if start is not None:
             tol = resume.tol
         elif rnd == 0:
-            tol = max(ftol, fire_rel * _force_scale(ff))
+            # FIRE alone (fire_rel = 0, large systems) needs no force scale: no gather for it
+            tol = max(ftol, fire_rel * _force_scale(ff)) if fire_rel > 0 else ftol
         else:
             nres = newton(ff, ftol, progress=progress)
             total.newton_steps += nres.newton_steps
@@ -229,8 +230,7 @@ def minimize(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_
 
 def _force_scale(ff):
     """Mean contact force magnitude |V'(r)| over all contacts (0 if there are none)."""
-    pos = ff.gather()
-    i, j, rij, r, sigma = ff.contacts(pos)
+    i, j, rij, r, sigma = ff.contacts()
     own = (i >= ff.lo) & (i < ff.hi)
     tot = ff.mpi.allreduce(np.abs(potential.dV(r[own], sigma[own], ff.alpha, ff.eps)).sum())
     cnt = ff.mpi.allreduce(int(own.sum()))

@@ -18,6 +18,13 @@ recorded with every state.  Every returned state is also checked to be a stable 
 minimised again, or else taken through a compression cycle (``stabilise``).  A ladder step that
 unjams ends the ladder with ``LadderUnjammed``, which carries the jammed states made before it.
 
+On the decomposition (issue 18): the Jammer holds the state in its force field's PETSc block
+rows (positions, diameters, species of this rank's rows; box and constants), never all N of
+them.  Every per-state number comes from parjam.jamnet on the slabs (``network``), the stability
+check and the escapes from parjam.stability on the same half-edges, Newton from the force
+field's distributed neighbour list; ``packing_for_file`` is the one gather, for the States whose
+files parjam.ensemble writes.  On one rank every number is the serial one bitwise.
+
 (Over 500 lines: the Jammer is one state machine over one force field and its checkpoint; every
 minimisation, the escapes' and the cycles' included, goes through its checkpointed ``relax``, so
 they are its methods; the stability test itself and the escape searches live in
@@ -34,7 +41,7 @@ from parjam.forces import ForceField
 from parjam.logstage import log_stage
 from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW,
                              DEFAULT_FTOL, DEFAULT_PHI_START, DEFAULT_RATIO)
-from parjam.system import Packing, sphere_volume
+from parjam.system import Packing, sphere_volume, wrap
 
 DISPERSITIES = ("mono", "bi", "poly")
 PHI_MAX = {2: 0.99, 3: 0.9}  # the phi_c search gives up above these (nothing jams so late)
@@ -101,6 +108,11 @@ def spatial_order(pos, L, cell):
     return np.argsort(key, kind="stable")
 
 
+def per_particle(value, n):
+    """Whether a metadata value is a per-particle array (n rows)."""
+    return isinstance(value, np.ndarray) and value.ndim >= 1 and len(value) == n
+
+
 class LadderUnjammed(UnjammedError):
     """A step of the dphi ladder (or of the target pressures) unjammed: ``states`` are the
     jammed states made before it, ``step`` the dphi (or pressure) that unjammed.  The steps
@@ -142,9 +154,18 @@ class Jammer:
         self.progress = progress
         self.checkpoint = checkpoint  # parjam.checkpoint.Checkpoint, or None
         self.calls = 0  # minimisations so far: the key of their checkpoint records
+        # the state: positions only in the force field's block rows (no rank keeps all N of
+        # them between FIRE and the file, ``packing_for_file``); box, diameters and constants
+        self.n, self.d, self.L = pack.n, pack.d, pack.L
+        self.alpha, self.eps = pack.alpha, pack.eps
+        self.sphere_volume = sphere_volume(pack.diam, self.d).sum()
         self.ff = ForceField(comm, pack.diam, pack.L, pack.d, pack.alpha, pack.eps)
-        self.pack = pack.copy()
-        self.ff.set_positions(self.pack.pos)
+        self.ff.set_positions(pack.pos)
+        # per-particle metadata (species) kept as the block rows, like the diameters
+        lo, hi = self.ff.lo, self.ff.hi
+        self.meta = {k: (np.array(v[lo:hi]) if per_particle(v, self.n) else v)
+                     for k, v in pack.meta.items()}
+        self.row_meta = {k for k, v in pack.meta.items() if per_particle(v, self.n)}
         self.total_fire = 0
         self.total_newton = 0
         # minimiser steps: a line every 10 s at most (only long minimisations show them)
@@ -162,32 +183,72 @@ class Jammer:
         call, ck = self.calls, self.checkpoint
         self.calls += 1
         record = ck.finished(call) if ck is not None else None
-        if record is not None and phi is not None and record["L"] != self.pack.box_for_phi(phi):
+        if record is not None and phi is not None and record["L"] != self.box_for_phi(phi):
             self._log(f"checkpoint record {call + 1} is at another volume fraction than this "
                       f"protocol asks for: recomputing from there")
             ck.discard_from(call)
             record = None
         if record is not None:
-            return self._replay(record)
+            return self._replay(call, record)
         if phi is not None:
-            self.pack = self.pack.rescaled(phi)
-            self._set_state(self.pack.pos, self.pack.L)
+            self.rescale(phi)
         calls_before = self.ff.n_force_calls
         resume = self._resume(call) if ck is not None else None
-        hook = ck.snapshot(call, self.ff, self.pack.L, calls_before) if ck is not None else None
+        hook = ck.snapshot(call, self.ff, self.L, calls_before) if ck is not None else None
         try:
             ftol = self.settings.ftol if ftol is None else ftol
             res = minimize.minimize(self.ff, ftol, e_stop,
                                    fire_rel=self.settings.fire_rel, progress=self._inner,
                                    snapshot=hook, resume=resume)
         except ValueError as exc:  # e.g. a box too small for the neighbour search
-            raise ParjamError(f"at phi = {self.pack.phi:.10f}: {exc}", collective=False) from None
+            raise ParjamError(f"at phi = {self.phi:.10f}: {exc}", collective=False) from None
         self.total_fire += res.fire_steps
         self.total_newton += res.newton_steps
-        self.pack.pos = np.array(self.ff.gather())
         if ck is not None:
-            ck.finish(call, self.pack, res, self.ff.n_force_calls - calls_before)
+            ck.finish(call, self.ff, self.L, res, self.ff.n_force_calls - calls_before)
         return res
+
+    @property
+    def phi(self):
+        return float(self.sphere_volume / self.volume)
+
+    @property
+    def volume(self):
+        return self.L**self.d
+
+    def box_for_phi(self, phi):
+        """Box edge giving volume fraction phi (system.Packing.box_for_phi)."""
+        return float((self.sphere_volume / phi) ** (1.0 / self.d))
+
+    def rescale(self, phi):
+        """Affine rescaling of the box and of the owned positions to volume fraction phi
+        (system.Packing.rescaled, on the force field's block rows)."""
+        L = self.box_for_phi(phi)
+        x = self.ff.local(self.ff.x)
+        x[:] = wrap(x * (L / self.L), L)
+        self.L = L
+        self.ff.set_box(L)
+
+    def packing_for_file(self):
+        """The current state as a Packing held by every rank: THE gather of the positions
+        (N x d), for the packing file (parjam.ensemble writes the States that carry it) and for
+        callers that want the whole configuration; the protocol's own steps work on the force
+        field's block rows.  The gather buffer is freed at once."""
+        pos = np.array(self.ff.gather())
+        self.ff.drop_gather()
+        meta = {k: (self.gather_rows(v) if k in self.row_meta else v)
+                for k, v in self.meta.items()}
+        return Packing(pos, self.gather_rows(self.ff.diam_rows), self.L, self.alpha, self.eps,
+                       meta)
+
+    def gather_rows(self, rows):
+        """Per-particle values of the block rows, all N of them on every rank (for the file)."""
+        return np.concatenate(self.comm.tompi4py().allgather(np.asarray(rows)))
+
+    @property
+    def pack(self):
+        """``packing_for_file()`` (collective): the whole current configuration."""
+        return self.packing_for_file()
 
     def _resume(self, call):
         """The MinimiseState of minimisation ``call`` if a checkpoint caught it in progress
@@ -202,15 +263,12 @@ class Jammer:
                   f"{state.fire.step} of round {state.round})")
         return state
 
-    def _set_state(self, pos, L):
-        """Box and positions of the force field (a new box drops the neighbour list)."""
-        self.ff.set_box(L)
-        self.ff.set_positions(pos)
-
-    def _replay(self, record):
-        """A minimisation of an earlier run, from its checkpoint record."""
-        self.pack.pos, self.pack.L = record["pos"].copy(), record["L"]
-        self._set_state(self.pack.pos, self.pack.L)
+    def _replay(self, call, record):
+        """A minimisation of an earlier run, from its checkpoint record (collective: each rank
+        receives its block rows of the positions)."""
+        self.L = record["L"]
+        self.ff.set_box(self.L)
+        self.checkpoint.replay_rows(call, self.ff)
         res = record["result"]
         self.total_fire += res.fire_steps
         self.total_newton += res.newton_steps
@@ -221,20 +279,19 @@ class Jammer:
         """The current state's contact network (parjam.jamnet) from the force field's block
         rows, on the slabs: no rank gathers the positions for it (collective)."""
         ff = self.ff
-        return jamnet.build(self.comm, ff.local(ff.x), ff.diam[ff.lo:ff.hi],
-                            np.arange(ff.lo, ff.hi, dtype=np.int64), ff.L, self.pack.alpha,
-                            self.pack.eps)
+        return jamnet.build(self.comm, ff.local(ff.x), ff.diam_rows,
+                            np.arange(ff.lo, ff.hi, dtype=np.int64), ff.L, self.alpha, self.eps)
 
     def pressure(self):
         return self.network().pressure
 
     def state(self, res, label, **info):
-        return State(self.pack.copy(), res, label, info)
+        return State(self.packing_for_file(), res, label, info)
 
     def stable_state(self, res, label, e_stop=-np.inf, phi=None, **info):
         """The State of the current minimum after ``stabilise``; its info records the check."""
         res, check = self.stabilise(res, e_stop, phi)
-        return State(self.pack.copy(), res, label, {**info, **check})
+        return State(self.packing_for_file(), res, label, {**info, **check})
 
     def stabilise(self, res, e_stop=-np.inf, phi=None):
         """Make the current minimum (at volume fraction ``phi``, default the current one) a
@@ -249,7 +306,7 @@ class Jammer:
         flagged (stable = 0), never dropped: the state the directional escapes left (a failed
         cycle is undone)."""
         with log_stage("pack: stability"):
-            phi = self.pack.phi if phi is None else phi
+            phi = self.phi if phi is None else phi
             net = self.network()
             tol = self.balance_tol(net)
             if res.ok and net.max_force > tol:
@@ -261,16 +318,17 @@ class Jammer:
             for factor in CYCLE_FACTORS:
                 if cur.stable or res.status == "unjammed" or cur.n_active == 0:
                     break
-                kept = (self.pack.copy(), res, cur)
+                kept = (self.ff.x.copy(), self.L, res, cur)  # block rows
                 cycles += 1
                 res, cur = self.compression_cycle(phi, factor, e_stop)
                 if not cur.stable and res.status != "unjammed" and cur.n_active > 0:
                     res, cur, more, _ = self.escape(res, cur, self.network(), e_stop)
                     escapes += more
                 if not cur.stable:  # undo the cycle: the flagged state is the escapes' one
-                    self.pack, res, cur = kept
-                    self.pack = self.pack.copy()
-                    self._set_state(self.pack.pos, self.pack.L)
+                    x, self.L, res, cur = kept
+                    self.ff.set_box(self.L)
+                    x.copy(self.ff.x)
+                kept[0].destroy()
         if not cur.stable:
             self._log(f"state still unstable after {escapes} escape(s) and {cycles} compression "
                       f"cycle(s): {cur.n_negative} negative curvature(s), Nc - Nc_iso = "
@@ -355,7 +413,6 @@ class Jammer:
             before.destroy()
             return res
         before.destroy()
-        self.pack.pos = np.array(self.ff.gather())
         return minimize.MinResult("converged", nres.energy, nres.fmax, res.fire_steps,
                                   res.newton_steps + nres.newton_steps)
 
@@ -372,10 +429,10 @@ class Jammer:
 
     def _find_phi_c(self):
         s = self.settings
-        n = self.pack.n
+        n = self.n
         lo, hi = 0.0, np.inf
         step = s.first_step
-        phi = self.pack.phi
+        phi = self.phi
         for it in range(1, s.max_iter + 1):
             res = self.relax(phi, e_stop=s.e_low * n)
             e = res.energy / n
@@ -391,8 +448,8 @@ class Jammer:
                 lo = phi
                 phi = phi + step if np.isinf(hi) else 0.5 * (lo + hi)
                 step = min(2.0 * step, 0.02)
-                if phi > PHI_MAX[self.pack.d]:
-                    raise UnjammedError(f"no jammed state below phi = {PHI_MAX[self.pack.d]}: "
+                if phi > PHI_MAX[self.d]:
+                    raise UnjammedError(f"no jammed state below phi = {PHI_MAX[self.d]}: "
                                         f"E/N = {e:.3e} at phi = {lo:.10f}", collective=False)
             else:
                 hi = phi
@@ -425,24 +482,24 @@ class Jammer:
 
     def _jammed_start(self):
         """Minimise at the current phi, compressing by 0.01 until the packing is jammed."""
-        phi = self.pack.phi
+        phi = self.phi
         while True:
-            res = self.relax(phi, e_stop=self.settings.e_low * self.pack.n)
+            res = self.relax(phi, e_stop=self.settings.e_low * self.n)
             if res.status != "unjammed":
                 return res
             phi += 0.01
-            if phi > PHI_MAX[self.pack.d]:
+            if phi > PHI_MAX[self.d]:
                 break
-        raise UnjammedError(f"no jammed state below phi = {PHI_MAX[self.pack.d]}",
+        raise UnjammedError(f"no jammed state below phi = {PHI_MAX[self.d]}",
                             collective=False)
 
     def _find_phi_c_from_above(self, dphi_stop, ratio):
         res = self._jammed_start()
         if not res.ok:
-            raise ParjamError(f"minimisation did not converge at phi = {self.pack.phi:.10f} "
+            raise ParjamError(f"minimisation did not converge at phi = {self.phi:.10f} "
                               f"(max|F| = {res.fmax:.2e})", collective=False)
         found = self._refine(dphi_stop, ratio, self.settings.max_iter, tol=None, res=res)
-        return State(self.pack.copy(), found.pop("result"), "phi_c,est",
+        return State(self.packing_for_file(), found.pop("result"), "phi_c,est",
                      {**found, "dphi_est": found["dphi_reached"],
                       "phi_c_method": "virial extrapolation from above"})
 
@@ -463,12 +520,12 @@ class Jammer:
         """The loop of ``refine_phi_c``; ``tol`` None: stop at the first state within
         1.5 dphi_stop once there are two estimates (the extrapolation protocol's cost)."""
         estimates = []
-        jammed_phi = self.pack.phi
+        jammed_phi = self.phi
         for it in range(1, max_steps + 1):
             net = self.network()
             energy = net.energy
             excess = self._virial_excess(energy, net.pressure)
-            phi = self.pack.phi
+            phi = self.phi
             estimates.append(phi - excess)
             change = abs(estimates[-1] - estimates[-2]) if len(estimates) > 1 else np.inf
             self._log(f"phi_c refinement {it}: phi = {phi:.14f}, dphi_est = {excess:.3e}, "
@@ -480,7 +537,7 @@ class Jammer:
                 break
             dphi = excess / ratio if near else max(dphi_stop, excess / ratio)
             target = estimates[-1] + dphi
-            e_stop = 1e-3 * energy * (dphi / excess) ** self.pack.alpha
+            e_stop = 1e-3 * energy * (dphi / excess) ** self.alpha
             res = self.relax_balanced(target, e_stop=e_stop)
             if res.status == "unjammed" or self.network().n_active == 0:
                 # the network changed on the way (or only rattlers keep a few overlaps, forces
@@ -488,10 +545,10 @@ class Jammer:
                 res = self.relax_balanced(jammed_phi)
                 ratio = max(2.0, ratio / 3.0)
             if not res.ok:
-                raise ParjamError(f"minimisation did not converge at phi = {self.pack.phi:.10f} "
+                raise ParjamError(f"minimisation did not converge at phi = {self.phi:.10f} "
                                   f"(max|F| = {res.fmax:.2e})", collective=False)
-            jammed_phi = self.pack.phi
-        resolution = max(change, PHI_C_ROUNDOFF * self.pack.phi)
+            jammed_phi = self.phi
+        resolution = max(change, PHI_C_ROUNDOFF * self.phi)
         return {"phi_c": estimates[-1], "phi_c_resolution": resolution, "iterations": it,
                 "phi_c_estimates": np.array(estimates), "dphi_reached": excess, "result": res}
 
@@ -500,8 +557,8 @@ class Jammer:
         (``p``: its pressure, default the current state's)."""
         p = self.pressure() if p is None else p
         if p <= 0 or energy <= 0:
-            raise UnjammedError(f"no pressure at phi = {self.pack.phi:.10f}", collective=False)
-        return self.pack.alpha * energy * self.pack.phi / (p * self.pack.volume)
+            raise UnjammedError(f"no pressure at phi = {self.phi:.10f}", collective=False)
+        return self.alpha * energy * self.phi / (p * self.volume)
 
     def _predict_phi(self, energy):
         """Volume fraction where E/N reaches the middle of the window, from the virial relation
@@ -511,18 +568,18 @@ class Jammer:
             excess = self._virial_excess(energy)
         except UnjammedError:
             return -1.0
-        phi = self.pack.phi
-        target = 0.5 * (s.e_low + s.e_high) * self.pack.n
-        return phi - excess + excess * (target / energy) ** (1.0 / self.pack.alpha)
+        phi = self.phi
+        target = 0.5 * (s.e_low + s.e_high) * self.n
+        return phi - excess + excess * (target / energy) ** (1.0 / self.alpha)
 
     def at_phi(self, phi, label, e_stop=None, **info):
         """Minimised, stable (``stabilise``) state at volume fraction phi; UnjammedError if the
         energy falls below ``e_stop`` (default: 1e-6 of the low end of the energy window)."""
-        e_stop = self.settings.e_low * self.pack.n * 1e-6 if e_stop is None else e_stop
+        e_stop = self.settings.e_low * self.n * 1e-6 if e_stop is None else e_stop
         res = self.relax_balanced(phi, e_stop=e_stop)
         if res.status == "unjammed" or (res.ok and self.network().n_active == 0):
             raise UnjammedError(f"unjammed at phi = {phi:.10f}: energy per particle reached "
-                                f"{res.energy / self.pack.n:.3e}", collective=False)
+                                f"{res.energy / self.n:.3e}", collective=False)
         if not res.ok:
             raise ParjamError(f"minimisation did not converge at phi = {phi:.10f} "
                               f"(max|F| = {res.fmax:.2e})", collective=False)
@@ -532,9 +589,9 @@ class Jammer:
         """An energy far below that of a jammed state at phi_c + dphi (overlaps ~dphi / (2 d),
         z/2 ~ d contacts per particle), above which the state counts as jammed: the window's
         1e-6 floor, lowered for dphi below ~1e-8 where E/N itself is below it."""
-        d, a = self.pack.d, self.pack.alpha
-        expected = self.pack.n * d * (dphi / (2.0 * d)) ** a / a
-        return min(self.settings.e_low * self.pack.n * 1e-6, 1e-4 * expected)
+        d, a = self.d, self.alpha
+        expected = self.n * d * (dphi / (2.0 * d)) ** a / a
+        return min(self.settings.e_low * self.n * 1e-6, 1e-4 * expected)
 
     def ladder(self, phi_c, dphis, direction="compress"):
         """States at phi_c + dphi, compressing upwards or decompressing from the largest."""
@@ -565,7 +622,7 @@ class Jammer:
 
     def _at_pressure(self, p_target, phi_c):
         s = self.settings
-        expo = 1.0 / (self.pack.alpha - 1.0)
+        expo = 1.0 / (self.alpha - 1.0)
         g_t = p_target**expo
         pts = [(phi_c, 0.0)]
         phi = phi_c + g_t  # first guess: p ~ dphi^(alpha-1) with unit prefactor

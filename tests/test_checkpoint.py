@@ -261,3 +261,29 @@ def test_killed_process_resumes_from_its_checkpoint(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "resuming from" in r.stderr and "one in progress" in r.stderr, r.stderr
     _assert_same(out, str(tmp_path / "ref"))
+
+
+def test_finished_positions_reach_rank_0_block_by_block_and_come_back(world, shared_tmp):
+    """A finished minimisation's positions are held by rank 0 only (the writer), exactly; the
+    file it writes replays them into every rank's block rows, bitwise, on a fresh checkpoint."""
+    pack = random_packing(3, 96, 0.70, rng=np.random.default_rng(3))
+    path = os.path.join(shared_tmp, "rows", "member0000.h5")
+    ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
+    try:
+        ff.set_positions(pack.pos)
+        ck = checkpoint.Checkpoint(path, world, 1e-9, {"test": "rows"})
+        ck.finish(0, ff, pack.L, MinResult("converged", 1.0, 0.0), 5)
+        rec = ck.finished(0)
+        if world.getRank() == 0:
+            assert np.array_equal(rec["pos"], pack.pos)
+        else:
+            assert rec["pos"] is None
+        assert rec["L"] == pack.L and rec["force_calls"] == 5
+        world.tompi4py().Barrier()
+        again = checkpoint.Checkpoint(path, world, 1e-9, {"test": "rows"})
+        assert again.loaded
+        ff.set_positions(np.zeros_like(pack.pos))
+        again.replay_rows(0, ff)
+        assert np.array_equal(ff.local(ff.x), pack.pos[ff.lo:ff.hi])
+    finally:
+        ff.destroy()

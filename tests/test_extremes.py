@@ -109,12 +109,13 @@ def test_saddle_detected_and_relaxed(ladder, world):
     jam = Jammer(PETSc.COMM_SELF, saddle)  # (a shared FIRE run costs minutes in the MPI pass)
     try:
         res, info = jam.stabilise(MinResult("converged", 0.0, 0.0))
+        final = jam.packing_for_file()
     finally:
         jam.destroy()
-    after = network.analyze(jam.pack)
+    after = network.analyze(final)
     assert info["stable"] == 1 and info["escapes"] >= 0
     assert after.excess >= 0 and after.max_force < 1e-13
-    assert _dense_negatives(jam.pack, info["curvature_shift"]) == 0
+    assert _dense_negatives(final, info["curvature_shift"]) == 0
     assert after.pressure == pytest.approx(network.analyze(stable).pressure, rel=0.05)
 
 
@@ -230,9 +231,10 @@ def test_compression_cycle_stabilises_where_the_escapes_cannot(ladder, monkeypat
         jam = Jammer(PETSc.COMM_SELF, saddle, progress=lines.append, checkpoint=ck)
         try:
             res, info = jam.stabilise(MinResult("converged", 0.0, 0.0), phi=saddle.phi)
+            final = jam.packing_for_file()
         finally:
             jam.destroy()
-        runs.append((jam.pack, info, ck.loaded, jam.calls, lines))
+        runs.append((final, info, ck.loaded, jam.calls, lines))
     (pack, info, loaded, calls, _), (again, info2, resumed, calls2, lines2) = runs
     assert not loaded and resumed and calls == calls2 >= 2  # compress, decompress: replayed
     assert not any("recomputing" in line for line in lines2), lines2
