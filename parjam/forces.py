@@ -12,9 +12,9 @@ rows: on one rank from linked cells in compiled code (kernels.cell_pairs; in a b
 than 3 cells a side a k-d tree), on several from the slabs of parjam.domain (``slab_pairs``:
 the block rows visit their slabs, one ghost exchange, each pair back to the block rows of its
 ends), so no rank gathers the positions; each rank computes the forces on its particles only
-and assembles its rows of Newton's Hessian from the halo positions.  Between rebuilds a force evaluation fetches
-just the positions of the particles those pairs touch (its own and a halo of ghosts, one
-VecScatter).  Forces on a particle are summed over its pairs in global (i, j) order, so they
+and assembles its rows of Newton's Hessian from the halo positions.  Between rebuilds a force
+evaluation fetches just the positions of the particles those pairs touch (its own and a halo of
+ghosts, one VecScatter; their diameters are fetched once per rebuild).  Forces on a particle are summed over its pairs in global (i, j) order, so they
 are bitwise independent of the number of ranks.  Scalars (energy, max |F|) are reduced over
 the communicator.
 """
