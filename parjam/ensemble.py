@@ -7,12 +7,13 @@ import time
 import h5py
 import numpy as np
 
-from parjam import checkpoint, faults, io, manifest, order, outputs
+from parjam import checkpoint, faults, io, manifest, order, outputs, statefile
 from parjam.importer import from_file
 from parjam.network import analyze
 from parjam.errors import UnjammedError
 from parjam.packing import (RESOLVED_FRACTION, JamSettings, Jammer, LadderUnjammed, member_rng,
                             random_packing)
+from parjam.system import Packing
 
 
 def settings_from(args):
@@ -91,9 +92,9 @@ def find_phi_c(jammer, args, progress):
     phi_c, resolution = found["phi_c"], found["phi_c_resolution"]
     phic.info.update(phi_c=phi_c, phi_c_resolution=resolution,
                      phi_c_estimates=found["phi_c_estimates"],
-                     dphi=phic.pack.phi - phi_c)
+                     dphi=phic.phi - phi_c)
     progress(f"phi_c = {phi_c:.12f} +- {resolution:.1e} (refined from the jammed side; the "
-             f"bisection's state lies {phic.pack.phi - phi_c:.2e} above it)")
+             f"bisection's state lies {phic.phi - phi_c:.2e} above it)")
     return phi_c, ([] if args.no_phic_file else [phic]), "ohern-bisection", resolution
 
 
@@ -124,13 +125,30 @@ DPHI_VIRIAL_TOL = 0.05
 DPHI_VIRIAL_SQRT = 0.5
 
 
-def virial_dphi(pack):
-    """phi - phi_c of a state from its own contact network, alpha E phi / (p V) (the virial
-    relation of parjam.packing.Jammer.refine_phi_c); NaN without pressure."""
-    net = analyze(pack)
+def state_network(st):
+    """The contact network of a State: on the slabs from its rows (parjam.statefile, collective),
+    serially (network.analyze) for a State made from a whole Packing."""
+    if isinstance(st.rows, Packing):
+        return analyze(st.rows)
+    return st.rows.network()
+
+
+def state_hexatic(st, net):
+    """(local, global) hexatic order of a State (parjam.order), from its rows where it has
+    them (collective)."""
+    if isinstance(st.rows, Packing):
+        return order.hexatic_order(st.rows)
+    return statefile.hexatic_order(st.rows, net)
+
+
+def virial_dphi(st):
+    """phi - phi_c of a State from its own contact network, alpha E phi / (p V) (the virial
+    relation of parjam.packing.Jammer.refine_phi_c); NaN without pressure.  Collective."""
+    net = state_network(st)
+    rows = st.rows
     if net.pressure <= 0 or net.energy <= 0:
         return np.nan
-    return pack.alpha * net.energy * pack.phi / (net.pressure * pack.volume)
+    return rows.alpha * net.energy * rows.phi / (net.pressure * rows.volume)
 
 
 def virial_flags(states):
@@ -141,8 +159,8 @@ def virial_flags(states):
         phi_c = st.info.get("phi_c")
         if phi_c is None:
             continue
-        label = st.pack.phi - phi_c
-        found = virial_dphi(st.pack)
+        label = st.phi - phi_c
+        found = virial_dphi(st)
         tol = virial_tolerance(label)
         st.info["dphi_virial"] = found
         st.info["dphi_virial_ok"] = int(bool(np.isfinite(found)
@@ -159,16 +177,17 @@ REL_FORCE_WARN = 1e-4  # max|F| / mean contact force above this: force balance i
 # dphi = 1e-8 reaches 1.8e-3)
 
 
-def quality_checks(pack, net, label, dphi=None):
-    """Observables that flag a state which is not what it seems, each with a warning on stderr:
-    a crystallised 2D packing (hexatic order, parjam.order) and a force balance that is poor
-    relative to the contact forces (e.g. alpha = 3 at dphi = 1e-8, where forces are ~1e-16 and
-    the absolute --ftol means little)."""
-    extra, warning = order.check(pack, net, dphi)  # hexatic order and contact excess
-    if warning:
+def quality_checks(pack, net, label, dphi=None, hexatic=None, speak=True):
+    """Observables that flag a state which is not what it seems, each with a warning on stderr
+    (where ``speak``): a crystallised 2D packing (hexatic order, parjam.order; ``hexatic`` its
+    (local, global) values where known, else computed from ``pack``) and a force balance that
+    is poor relative to the contact forces (e.g. alpha = 3 at dphi = 1e-8, where forces are
+    ~1e-16 and the absolute --ftol means little)."""
+    extra, warning = order.check(pack, net, dphi, hexatic)  # hexatic order and contact excess
+    if warning and speak:
         _warn(f"{label}: {warning}")
     rel = net.summary()["max_force_rel"]
-    if rel > REL_FORCE_WARN:
+    if rel > REL_FORCE_WARN and speak:
         _warn(f"{label}: force balance only {rel:.1e} of the mean contact force "
               f"(max|F| = {net.max_force:.1e}, mean contact force {net.mean_force:.1e}): the "
               f"contact forces approach the round-off of the forces")
@@ -180,16 +199,16 @@ STABILITY_KEYS = ("stable", "negative_curvatures", "negative_curvatures_found", 
                   "dphi_virial", "dphi_virial_ok", "ladder_unjammed_at")
 
 
-def stability_observables(st, label):
+def stability_observables(st, label, speak=True):
     """/observables entries of the stability check (parjam.packing.Jammer.stabilise), the virial
     dphi check (``virial_flags``) and, for a member whose ladder unjammed, the step that did;
     a state that could not be made a stable minimum is flagged (stable = 0) and said on
-    stderr."""
+    stderr (where ``speak``)."""
     out = {k: st.info[k] for k in STABILITY_KEYS if k in st.info}
     if "dphi_virial_ok" in out:
         out["dphi_virial_ok"] = np.int8(out["dphi_virial_ok"])
-        if not out["dphi_virial_ok"]:
-            label_dphi = st.pack.phi - st.info["phi_c"]
+        if not out["dphi_virial_ok"] and speak:
+            label_dphi = st.phi - st.info["phi_c"]
             _warn(f"{label}: its own contact network puts it at dphi = "
                   f"{st.info['dphi_virial']:.2e} from jamming (virial relation), not "
                   f"phi - phi_c = {label_dphi:.2e} (tolerance "
@@ -197,7 +216,7 @@ def stability_observables(st, label):
                   f"way (dphi_virial_ok = 0 in /observables)")
     if "stable" in out:
         out["stable"] = np.int8(out["stable"])
-        if not out["stable"]:
+        if not out["stable"] and speak:
             _warn(f"{label}: not a stable minimum after {st.info['escapes']} escape(s) and "
                   f"{st.info.get('cycles', 0)} compression cycle(s) from its saddle "
                   f"({st.info['negative_curvatures']} negative curvature(s) of the full "
@@ -239,7 +258,7 @@ class MemberIncomplete(UnjammedError):
 
 
 def pack_member(args, member, comm, progress, run_params=None):
-    """Compute, write (group rank 0) and summarise the states of one ensemble member; then its
+    """Compute, write (by row blocks) and summarise the states of one ensemble member; then its
     manifest record (parjam.manifest), so that a restarted run skips it.  ``args`` is the
     member's parjam.protocol.PackingProtocol (from ``parjam pack`` or a scene).  Where a step
     of its ladder unjams, the jammed states before it are written and MemberIncomplete (an
@@ -249,8 +268,10 @@ def pack_member(args, member, comm, progress, run_params=None):
     states, protocol, totals, stopped = member_states(args, member, comm, progress, ck)
     rows = []
     paths = []
+    root = comm.getRank() == 0
     for st in states:
-        net = analyze(st.pack)
+        net = state_network(st)  # on the slabs, from the state's rows (collective)
+        hexatic = state_hexatic(st, net)
         params = {
             "protocol": protocol, "ladder": args.ladder if "ladder" in protocol else "none",
             "seed": args.seed, "member": member, "dimension": args.dim, "n": args.n,
@@ -261,21 +282,15 @@ def pack_member(args, member, comm, progress, run_params=None):
             **{k: v for k, v in st.info.items()}, **totals,
         }
         path = file_name(args.out, member, st)
-
-        def write(st=st, net=net, params=params, path=path):
-            prov = io.provenance(comm.tompi4py().Get_size(), {"world_ranks": _world_size()})
-            st.pack.meta.setdefault("species", st.pack.meta.get("species"))
-            extra = quality_checks(st.pack, net, f"member {member} {st.label}",
-                                   st.pack.phi - st.info.get("phi_c", np.nan))
-            extra.update(stability_observables(st, f"member {member} {st.label}"))
-            io.write_packing(path, st.pack, net, params, prov, extra)
-
-        # the group's rank 0 writes; a failed write (a full disk) ends every rank of the group
-        # with the same line, not an MPI abort
-        outputs.on_root(comm, write)
-        if comm.getRank() == 0:
+        prov = io.provenance(comm.tompi4py().Get_size(), {"world_ranks": _world_size()})
+        extra = quality_checks(st.rows, net, f"member {member} {st.label}",
+                               st.phi - st.info.get("phi_c", np.nan), hexatic, speak=root)
+        extra.update(stability_observables(st, f"member {member} {st.label}", speak=root))
+        # by row blocks (parjam.rowio, collective): no rank holds all N; a failed write (a full
+        # disk) ends every rank of the group with the same line, not an MPI abort
+        statefile.write(path, st.rows, net, params, prov, extra)
+        if root:  # one row per state, however many ranks share the member
             paths.append(path)
-        if comm.getRank() == 0:  # one row per state, however many ranks share the member
             rows.append({"member": member, "state": st.label, "file": path, **net.summary(),
                          "phi_c": st.info.get("phi_c", np.nan),
                          "stable": int(st.info.get("stable", 1)),

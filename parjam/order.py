@@ -71,10 +71,12 @@ def ordered_by_contacts(net, dphi):
     return bool(net.excess >= EXCESS_MIN and net.dz > amorphous_dz_limit(dphi, net.n_active))
 
 
-def check(pack, net, dphi=None):
-    """(observables, warning or None) of a state: the hexatic order and the contact test;
-    ``crystallised`` is 1 when either finds order (the state is not an amorphous jammed solid)."""
-    local, glob = hexatic_order(pack)
+def check(pack, net, dphi=None, hexatic=None):
+    """(observables, warning or None) of a state: the hexatic order (``hexatic``: its (local,
+    global) values where the caller has them, else computed from ``pack``) and the contact
+    test; ``crystallised`` is 1 when either finds order (the state is not an amorphous jammed
+    solid)."""
+    local, glob = hexatic_order(pack) if hexatic is None else hexatic
     by_contacts = ordered_by_contacts(net, dphi)
     extra = {"hexatic_order_local": local, "hexatic_order_global": glob,
              "ordered_by_contacts": np.int8(by_contacts),

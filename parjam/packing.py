@@ -22,8 +22,9 @@ On the decomposition (issue 18): the Jammer holds the state in its force field's
 rows (positions, diameters, species of this rank's rows; box and constants), never all N of
 them.  Every per-state number comes from parjam.jamnet on the slabs (``network``), the stability
 check and the escapes from parjam.stability on the same half-edges, Newton from the force
-field's distributed neighbour list; ``packing_for_file`` is the one gather, for the States whose
-files parjam.ensemble writes.  On one rank every number is the serial one bitwise.
+field's distributed neighbour list; a State keeps its block rows (``state_rows``,
+parjam.statefile), from which parjam.ensemble writes its file by row blocks.  On one rank
+every number is the serial one bitwise.
 
 (Over 500 lines: the Jammer is one state machine over one force field and its checkpoint; every
 minimisation, the escapes' and the cycles' included, goes through its checkpointed ``relax``, so
@@ -39,6 +40,7 @@ from parjam import env, jamnet, minimize, stability
 from parjam.errors import ParjamError, UnjammedError
 from parjam.forces import ForceField
 from parjam.logstage import log_stage
+from parjam.statefile import StateRows
 from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW,
                              DEFAULT_FTOL, DEFAULT_PHI_START, DEFAULT_RATIO)
 from parjam.system import Packing, sphere_volume, wrap
@@ -137,12 +139,25 @@ class JamSettings:
 
 @dataclass
 class State:
-    """One minimised state of a configuration."""
+    """One minimised state of a configuration: this rank's rows of it (parjam.statefile), or a
+    whole Packing where a caller made one (tests)."""
 
-    pack: Packing
+    rows: object  # statefile.StateRows, or a system.Packing
     result: minimize.MinResult
     label: str
     info: dict = field(default_factory=dict)
+
+    @property
+    def pack(self):
+        """The whole configuration on every rank (collective where the State holds rows: a
+        gather; the protocol and ``parjam pack``'s files never ask for it)."""
+        if isinstance(self.rows, Packing):
+            return self.rows
+        return self.rows.packing()
+
+    @property
+    def phi(self):
+        return self.rows.phi
 
 
 class Jammer:
@@ -155,7 +170,7 @@ class Jammer:
         self.checkpoint = checkpoint  # parjam.checkpoint.Checkpoint, or None
         self.calls = 0  # minimisations so far: the key of their checkpoint records
         # the state: positions only in the force field's block rows (no rank keeps all N of
-        # them between FIRE and the file, ``packing_for_file``); box, diameters and constants
+        # them, the States and their files included: ``state_rows``); box, diameters and constants
         self.n, self.d, self.L = pack.n, pack.d, pack.L
         self.alpha, self.eps = pack.alpha, pack.eps
         self.sphere_volume = sphere_volume(pack.diam, self.d).sum()
@@ -229,21 +244,19 @@ class Jammer:
         self.L = L
         self.ff.set_box(L)
 
-    def packing_for_file(self):
-        """The current state as a Packing held by every rank: THE gather of the positions
-        (N x d), for the packing file (parjam.ensemble writes the States that carry it) and for
-        callers that want the whole configuration; the protocol's own steps work on the force
-        field's block rows.  The gather buffer is freed at once."""
-        pos = np.array(self.ff.gather())
-        self.ff.drop_gather()
-        meta = {k: (self.gather_rows(v) if k in self.row_meta else v)
-                for k, v in self.meta.items()}
-        return Packing(pos, self.gather_rows(self.ff.diam_rows), self.L, self.alpha, self.eps,
-                       meta)
+    def state_rows(self):
+        """A copy of the current state's block rows (statefile.StateRows: positions, diameters,
+        per-particle metadata of this rank's ids; O(N/P)), what a State keeps for its file."""
+        ff = self.ff
+        meta = {k: (np.array(v) if k in self.row_meta else v) for k, v in self.meta.items()}
+        return StateRows(self.comm, self.n, self.L, self.alpha, self.eps, self.phi, ff.lo,
+                         np.array(ff.local(ff.x)), np.array(ff.diam_rows), meta,
+                         frozenset(self.row_meta))
 
-    def gather_rows(self, rows):
-        """Per-particle values of the block rows, all N of them on every rank (for the file)."""
-        return np.concatenate(self.comm.tompi4py().allgather(np.asarray(rows)))
+    def packing_for_file(self):
+        """The whole current configuration as a Packing on every rank (collective: a gather,
+        for tests and callers that want it; the protocol and its files use ``state_rows``)."""
+        return self.state_rows().packing()
 
     @property
     def pack(self):
@@ -286,12 +299,12 @@ class Jammer:
         return self.network().pressure
 
     def state(self, res, label, **info):
-        return State(self.packing_for_file(), res, label, info)
+        return State(self.state_rows(), res, label, info)
 
     def stable_state(self, res, label, e_stop=-np.inf, phi=None, **info):
         """The State of the current minimum after ``stabilise``; its info records the check."""
         res, check = self.stabilise(res, e_stop, phi)
-        return State(self.packing_for_file(), res, label, {**info, **check})
+        return State(self.state_rows(), res, label, {**info, **check})
 
     def stabilise(self, res, e_stop=-np.inf, phi=None):
         """Make the current minimum (at volume fraction ``phi``, default the current one) a
@@ -499,7 +512,7 @@ class Jammer:
             raise ParjamError(f"minimisation did not converge at phi = {self.phi:.10f} "
                               f"(max|F| = {res.fmax:.2e})", collective=False)
         found = self._refine(dphi_stop, ratio, self.settings.max_iter, tol=None, res=res)
-        return State(self.packing_for_file(), found.pop("result"), "phi_c,est",
+        return State(self.state_rows(), found.pop("result"), "phi_c,est",
                      {**found, "dphi_est": found["dphi_reached"],
                       "phi_c_method": "virial extrapolation from above"})
 
