@@ -32,6 +32,9 @@ def member_states(args, member, comm, progress, checkpoint=None):
         pack = random_packing(args.dim, args.n, start_phi, args.alpha, args.dispersity,
                               args.ratio, rng)
     jammer = Jammer(comm, pack, settings_from(args), progress, checkpoint)
+    # the Jammer keeps its block rows only; the whole random start (made alike on every rank,
+    # as a serial run makes it) is not kept past here
+    del pack
     stopped = None
     try:
         if args.phi is not None:

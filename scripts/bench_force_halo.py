@@ -31,7 +31,7 @@ def rebuild_full(self, pos):
     """The rebuild before: a k-d tree of all N positions on every rank."""
     from parjam.system import neighbour_pairs, wrap
 
-    pairs = neighbour_pairs(wrap(pos, self.L), self.L, self.diam.max() + self.skin)
+    pairs = neighbour_pairs(wrap(pos, self.L), self.L, self.dmax + self.skin)
     i, j = pairs[:, 0], pairs[:, 1]
     self.pairs = pairs[((i >= self.lo) & (i < self.hi)) | ((j >= self.lo) & (j < self.hi))]
     self.pairs_i = np.ascontiguousarray(self.pairs[:, 0])
@@ -40,14 +40,15 @@ def rebuild_full(self, pos):
     self.n_rebuilds += 1
 
 
-def evaluate_allgather(self, f):
-    """The evaluation before the halo: all N positions gathered to every rank each time."""
+def evaluate_allgather(self, f, diam):
+    """The evaluation before the halo: all N positions gathered to every rank each time (and,
+    as then, all N diameters on every rank)."""
     from parjam import kernels
 
     self.n_force_calls += 1
     pos = self.gather()
     self._update_pairs(pos)
-    e_local = kernels.pair_forces(self.pairs_i, self.pairs_j, pos, self.diam, self.L,
+    e_local = kernels.pair_forces(self.pairs_i, self.pairs_j, pos, diam, self.L,
                                   self.alpha, self.eps, self.lo, self.hi, self.local(f))
     return self.mpi.allreduce(e_local)
 
@@ -57,7 +58,7 @@ def force_field(comm, pack, variant):
 
     ff = ForceField(comm, pack.diam, pack.L, pack.d, pack.alpha, pack.eps)
     if variant == "allgather":
-        ff.evaluate = evaluate_allgather.__get__(ff)
+        ff.evaluate = lambda f: evaluate_allgather(ff, f, pack.diam)
         ff._rebuild = rebuild_full.__get__(ff)
     return ff
 
