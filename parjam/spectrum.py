@@ -205,7 +205,9 @@ class Spectrum:
     n_unstable: int = -1  # eigenvalues below -zero_tol (inertia; -1 if not known)
     rejected_eigenvalue: np.ndarray = field(default_factory=lambda: np.zeros(0))
     rejected_error: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    vectors: np.ndarray = None  # (K, N', d) on rank 0 when asked for
+    vectors: np.ndarray = None  # (K, N', d) on rank 0 when asked for; on a distributed
+    # system's SLEPc paths (K, n_rows, d): this rank's active rows, particle ids ``vector_ids``
+    vector_ids: np.ndarray = None
     info: dict = field(default_factory=dict)
     seconds: float = 0.0
 
@@ -317,10 +319,6 @@ def compute(comm, system, kind="full", *, k=None, window=None, method="auto", to
                                tol=tol, target=target, want_vectors=vectors, progress=progress)
         finally:
             S.destroy()
-        if vectors and system.distributed:
-            ids = system.gather_active(comm)  # collective; the ids on rank 0
-            if spec.vectors is not None:  # rows in the order of the particle ids (the file's)
-                spec.vectors = spec.vectors[:, np.argsort(ids)]
     spec.seconds = time.perf_counter() - t0
     return spec
 
@@ -628,7 +626,8 @@ class _ModeObservables:
 
 
 def _collect(comm, eps, A, system, *, kind, method, n_wanted, tol, norm, want_vectors, log):
-    """Accepted pairs (true residual <= tol), their observables and (rank 0) vectors."""
+    """Accepted pairs (true residual <= tol), their observables and vectors: on a distributed
+    system each rank keeps its own rows (no rank holds all N'), else rank 0 all of them."""
     PETSc = env.petsc()
     SLEPc = env.slepc()
     stage = PETSc.Log.Stage("modes: observables")
@@ -637,14 +636,18 @@ def _collect(comm, eps, A, system, *, kind, method, n_wanted, tol, norm, want_ve
     take = min(nconv, n_wanted)
     obs = _ModeObservables(comm, system)
     v = A.createVecRight()
-    scatter, v0 = PETSc.Scatter.toZero(v) if want_vectors else (None, None)
+    own_rows = want_vectors and system.distributed
+    scatter, v0 = (PETSc.Scatter.toZero(v) if want_vectors and not own_rows
+                   else (None, None))
     rows = []
     vecs = []
     for idx in range(take):
         lam = eps.getEigenpair(idx, v).real
         err = eps.computeError(idx, SLEPc.EPS.ErrorType.ABSOLUTE) / norm
         rows.append((lam, err) + tuple(obs(v)))
-        if want_vectors:
+        if own_rows:
+            vecs.append(v.getArray(readonly=True).copy())
+        elif want_vectors:
             scatter.scatter(v, v0, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
             if comm.getRank() == 0:
                 vecs.append(v0.getArray(readonly=True).copy())
@@ -659,11 +662,14 @@ def _collect(comm, eps, A, system, *, kind, method, n_wanted, tol, norm, want_ve
     table = table[order]
     ok = table[:, 1] <= tol
     vectors = None
-    if want_vectors and comm.getRank() == 0:
+    if own_rows:
+        vectors = np.array(vecs).reshape(len(vecs), len(system.ids), system.d)[order][ok]
+    elif want_vectors and comm.getRank() == 0:
         vectors = np.array(vecs).reshape(-1, system.n, system.d)[order][ok]
     log(f"{method}: {nconv} converged, {int(ok.sum())} accepted of {n_wanted} wanted")
     return Spectrum(
         eigenvalue=table[ok, 0], error=table[ok, 1], participation_ratio=table[ok, 2],
         eps_perp=table[ok, 3], eps_par=table[ok, 4], matrix=kind, method=method, tolerance=tol,
         norm=norm, n_requested=n_wanted, rejected_eigenvalue=table[~ok, 0],
-        rejected_error=table[~ok, 1], vectors=vectors)
+        rejected_error=table[~ok, 1], vectors=vectors,
+        vector_ids=np.asarray(system.ids) if own_rows else None)

@@ -8,6 +8,7 @@ are sent to the owners of their rows)."""
 from dataclasses import dataclass
 
 import numpy as np
+from mpi4py import MPI
 
 from parjam import moduli as moduli_mod
 from parjam import solver_choice, spectrum, structure
@@ -151,9 +152,15 @@ def compute(comm, source, what=("speeds", "omega"), *, matrix="full", k=None, me
     return res
 
 
-def owned_vectors(comm, vectors, ids):
-    """The rows of eigenvectors held on rank 0 ((M, N', d), rows in ascending particle id) that
-    belong to this rank's non-rattlers ``ids`` (ascending): (M, len(ids), d) (collective)."""
+def owned_vectors(comm, spec, ids):
+    """The eigenvector rows of this rank's non-rattlers ``ids`` (ascending): (M, len(ids), d)
+    (collective).  The SLEPc paths leave them there already (``spec.vector_ids``); the dense
+    path holds them on rank 0 ((M, N', d), rows in ascending particle id) and sends them."""
+    if comm.allreduce(spec.vector_ids is not None, op=MPI.LAND):
+        if not np.array_equal(spec.vector_ids, ids):
+            raise RuntimeError("eigenvector rows do not match the owned non-rattlers")
+        return spec.vectors
+    vectors = spec.vectors
     shape = comm.bcast(None if vectors is None else vectors.shape[::2])
     parts = comm.gather(ids, root=0)
     if comm.Get_rank() == 0:
@@ -170,12 +177,12 @@ def owned_vectors(comm, vectors, ids):
 
 
 def structure_part(comm, sites, res, *, k_max, k_fit, smooth, log):
-    """F_L, F_T summed over each rank's owned non-rattlers (their eigenvector rows sent from
-    rank 0, where parjam.spectrum leaves them), one allreduce per block of wavevectors; the
+    """F_L, F_T summed over each rank's owned non-rattlers (their eigenvector rows, where
+    parjam.spectrum leaves them or sent from rank 0 after a dense solve), one allreduce per block of wavevectors; the
     result is the same on every rank."""
     spec = res.spectrum
     k_fit = k_fit or 1.5 * 2.0 * np.pi / sites.L  # the two smallest shells, |m|^2 = 1, 2
-    vec = owned_vectors(comm, spec.vectors, sites.net.ids)
+    vec = owned_vectors(comm, spec, sites.net.ids)
     spec.vectors = None
     log(f"structure factors: {len(spec.eigenvalue)} modes, k <= {k_max:.3g}")
     sf = structure.compute(vec, spec.frequency, sites.pos, sites.L, k_max, comm=comm)
