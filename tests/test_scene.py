@@ -459,20 +459,28 @@ def test_a_member_that_does_not_jam_is_left_out(shared_tmp, world, monkeypatch):
 
 
 def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world, monkeypatch):
-    """A ladder state with fewer contacts than isostatic makes active_system raise on the
-    ranks of one member only: the run records it as missing instead of stopping (on 2 ranks the
+    """A ladder state with fewer contacts than isostatic makes the analysis raise on the ranks
+    of one member only: the run records it as missing instead of stopping (on 2 ranks the
     other group would otherwise wait for ever)."""
-    from parjam import spectrum
+    from parjam import rowio, spectrum
     from parjam.errors import UnjammedError
 
-    real = spectrum.active_system
+    real = spectrum.distributed_system
 
-    def fragile(pack, net=None):
-        if pack.meta.get("member") == 1 and pack.meta.get("state") == "dphi1.0e-03":
+    def fragile(net):
+        if net.source.endswith("member0001_dphi1.0e-03.h5"):
             raise UnjammedError("unjammed packing (test)")
-        return real(pack, net)
+        return real(net)
 
-    monkeypatch.setattr(spectrum, "active_system", fragile)
+    real_network = rowio.network
+
+    def tagged(comm, rows):  # the network remembers the file it was read from
+        net = real_network(comm, rows)
+        net.source = rows.path
+        return net
+
+    monkeypatch.setattr(rowio, "network", tagged)
+    monkeypatch.setattr(spectrum, "distributed_system", fragile)
     out = os.path.join(shared_tmp, "fragile")
     code, runner = run_scene(scene_text("dos = { matrices = ['relaxed'] }"), out, world)
     assert code == 0

@@ -1,28 +1,36 @@
 """The per-state work of a scene's analysis stages: one record (a dict of arrays and scalars) per
-packing state, computed by the physics modules."""
+packing state, computed by the physics modules on the distributed active network of the
+state's file (parjam.rowio: each rank reads its rows, no rank holds all N).  The records are
+written by rank 0; a scene that stores eigenvectors (``lowest.vectors``) has them gathered
+there, in particle-id order."""
 
 import numpy as np
 
-from parjam import kpm, moduli, network, observables, spectrum
+from parjam import kpm, moduli, observables, rowio, spectrum
 from parjam import softmodes as sm
 from parjam.errors import ParjamError
 
 
-def network_record(pack):
-    """z, dz, p and the rest of the contact-network summary (parjam.network)."""
-    rec = dict(network.analyze(pack).summary())
-    rec["phi_c"] = float(pack.meta.get("phi_c", np.nan))
+def network_record(comm, rows, net=None):
+    """z, dz, p and the rest of the contact-network summary of a state's file rows (``rows``,
+    rowio.read_rows; parjam.active)."""
+    net = net if net is not None else rowio.network(comm, rows)
+    rec = dict(net.summary())
+    rec["phi_c"] = float(rows.meta.get("phi_c", np.nan))
     # 1 for a stable minimum, 0 for a state the packing protocol could not make one (flagged,
     # kept: parjam.packing.Jammer.stabilise); NaN for files written before the check existed
-    rec["stable"] = float(pack.meta.get("stable", np.nan))
+    rec["stable"] = float(rows.meta.get("stable", np.nan))
     return rec
 
 
 def dense_eigenvalues(comm, system, kind):
     """All eigenvalues of one matrix without eigenvectors (LAPACK eigvalsh of the deflated dense
-    matrix, parjam.spectrum's dense reference without its vectors): rank 0 computes, all get."""
+    matrix, parjam.spectrum's dense reference without its vectors): rank 0 computes, all get
+    (a distributed system is gathered there first: the dense path is for small N)."""
     mpi = comm.tompi4py()
     res = None
+    if system.distributed:
+        system = system.gathered(comm)
     if mpi.Get_rank() == 0:
         H = spectrum.dense_matrix(system, kind)
         norm = float(np.abs(H).sum(axis=1).max())
@@ -32,10 +40,10 @@ def dense_eigenvalues(comm, system, kind):
     return mpi.bcast(res, root=0)
 
 
-def spectrum_record(comm, pack, kind, req, tol):
+def spectrum_record(comm, rows, kind, req, tol):
     """The spectrum a state needs (req from parjam.study.plan.spectrum_needs, with its solver), with
     D0 and omega* (parjam.observables) and the per-mode sums when they were computed."""
-    system = spectrum.active_system(pack)
+    system = spectrum.distributed_system(rowio.network(comm, rows))
     sol = req["solver"]
     rec = {"solver": sol, "n_modes_total": system.n_modes, "n_active": system.n}
     if sol == "dense-eigvalsh":
@@ -63,8 +71,10 @@ def spectrum_record(comm, pack, kind, req, tol):
                    eps_par=cat("eps_par"), participation_ratio=cat("participation_ratio"),
                    norm=specs[0].norm, n_negative=max(s.n_negative for s in specs),
                    complete=all(s.complete for s in specs))
-        if req["vectors"] and comm.getRank() == 0:
-            rec["eigenvector"] = np.concatenate([s.vectors for s in specs])[first]
+        if req["vectors"]:
+            parts = [vectors_on_root(comm, s) for s in specs]  # collective
+            if comm.getRank() == 0:
+                rec["eigenvector"] = np.concatenate(parts)[first]
         if req["window"] is not None and sol == "dense-eigh":  # the dense path computed all
             rec["window"] = np.array(req["window"], dtype=float)
     omega = observables.frequency(rec["eigenvalue"])
@@ -84,6 +94,19 @@ def spectrum_record(comm, pack, kind, req, tol):
     return rec
 
 
+def vectors_on_root(comm, spec):
+    """A spectrum's eigenvectors (K, N', d) on rank 0 in particle-id order, from wherever
+    parjam.spectrum left them (each rank's rows, ``vector_ids``, or rank 0); None elsewhere."""
+    mpi = comm.tompi4py()
+    if not all(mpi.allgather(spec.vector_ids is not None)):
+        return spec.vectors if mpi.Get_rank() == 0 else None
+    ids = mpi.gather(spec.vector_ids, root=0)
+    rows = mpi.gather(spec.vectors.transpose(1, 0, 2), root=0)
+    if mpi.Get_rank() != 0:
+        return None
+    return np.concatenate(rows)[np.argsort(np.concatenate(ids))].transpose(1, 0, 2)
+
+
 KPM_PLATEAU = {"n_moments": 512, "n_probes": 16, "seed": 0}
 
 
@@ -99,18 +122,19 @@ def kpm_plateau_summary(comm, system, kind, omega):
     return d0, observables.omega_star(omega, system.n_modes, d0), window
 
 
-def moduli_record(comm, pack):
-    mod = moduli.compute(pack, comm)
+def moduli_record(comm, rows):
+    mod = moduli.compute(comm=comm, net=rowio.network(comm, rows))
     rec = {k: v for k, v in mod.summary().items() if v is not None and np.isscalar(v)}
     rec["stiffness"] = mod.stiffness
     return rec
 
 
-def softmodes_record(comm, pack, opts):
-    planes = [sm.parse_cut(c, pack.d) for c in opts["cuts"]]
+def softmodes_record(comm, rows, opts):
+    planes = [sm.parse_cut(c, rows.d) for c in opts["cuts"]]
     if opts["subdivide"] is not None:
-        planes += sm.subdivision_planes(opts["subdivide"], pack.d)
-    cs = sm.prepare(pack, list(dict.fromkeys(planes)), opts["allow_hyperstatic"])
+        planes += sm.subdivision_planes(opts["subdivide"], rows.d)
+    cs = sm.prepare(None, list(dict.fromkeys(planes)), opts["allow_hyperstatic"],
+                    net=rowio.network(comm, rows))
     res = sm.analyze(comm, cs, opts["e0"], opts["bins"])
     rec = {k: (np.nan if v is None else v) for k, v in res.summary().items()}
     rec.update(overlap=res.overlap, extension=res.e, trial_energy=res.trial_energy,

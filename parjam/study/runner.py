@@ -18,7 +18,7 @@ import time
 import h5py
 import numpy as np
 
-from parjam import ensemble, env, io, outputs
+from parjam import ensemble, env, io, outputs, rowio
 from parjam.errors import ParjamError, UnjammedError
 from parjam.fluctuations import contact_fluctuations
 from parjam.plot.spectra import dos_pictures
@@ -183,9 +183,9 @@ class Runner:
             return
         data = {}
         for label in st.states:
-            pack = io.read_packing(self.pack_path(st.system, m, label))
+            path = self.pack_path(st.system, m, label)
             try:
-                data[label] = self.state_record(st, comm, pack, label)
+                data[label] = self.state_record(st, comm, path, label)
             except ParjamError as exc:
                 # e.g. a ladder state left with fewer contacts than isostatic (floppy modes):
                 # raised by this member's group only, so record it and go on (raising it would
@@ -198,18 +198,21 @@ class Runner:
             write_part(self.part_path(st, m), data,
                        {"stage": st.name, "member": m, "kind": st.kind})
 
-    def state_record(self, st, comm, pack, label):
+    def state_record(self, st, comm, path, label):
+        """One state's record; every kind but the contact fluctuations (a serial count over
+        sub-boxes) reads only this rank's rows of the file."""
+        if st.kind == "fluctuations":
+            return contact_fluctuations(io.read_packing(path), st.params["max_divisions"])
+        rows = rowio.read_rows(comm, path)
         if st.kind == "network":
-            return network_record(pack)
+            return network_record(comm, rows)
         if st.kind == "spectrum":
-            return spectrum_record(comm, pack, st.matrix, st.params[label],
+            return spectrum_record(comm, rows, st.matrix, st.params[label],
                                    self.scene.solver["tol"])
         if st.kind == "moduli":
-            return moduli_record(comm, pack)
+            return moduli_record(comm, rows)
         if st.kind == "softmodes":
-            return softmodes_record(comm, pack, st.params)
-        if st.kind == "fluctuations":
-            return contact_fluctuations(pack, st.params["max_divisions"])
+            return softmodes_record(comm, rows, st.params)
         raise ValueError(f"unknown stage kind {st.kind}")
 
     # the summary -------------------------------------------------------------
