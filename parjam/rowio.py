@@ -409,13 +409,21 @@ def rows_file(comm, path, nbytes, chunk_bytes=CHUNK_BYTES):
     except BaseException as exc:
         stack.__exit__(type(exc), exc, exc.__traceback__)  # the temporary removed
         raise
+    close_on_root(comm, stack)
+
+
+def close_on_root(comm, stack):
+    """Close rank 0's ExitStack (the temporary file renamed into place) and raise its problem,
+    if any, on every rank (collective)."""
     problem = None
     if comm.Get_rank() == 0:
         try:
             stack.close()
         except ParjamError as exc:
             problem = str(exc)
-    out.raise_collective(problem)
+    problem = comm.bcast(problem, root=0)
+    if problem:
+        raise ParjamError(problem)
 
 
 def check_space(path, nbytes):
@@ -452,15 +460,7 @@ def parallel_file(comm, path, nbytes):
         if comm.Get_rank() == 0:
             stack.__exit__(type(exc), exc, exc.__traceback__)
         raise
-    problem = None
-    if comm.Get_rank() == 0:
-        try:
-            stack.close()
-        except ParjamError as exc:
-            problem = str(exc)
-    problem = comm.bcast(problem, root=0)
-    if problem:
-        raise ParjamError(problem)
+    close_on_root(comm, stack)
 
 
 # --- the per-particle datasets of parjam's files -----------------------------------------------
