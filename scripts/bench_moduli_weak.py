@@ -45,6 +45,9 @@ CONFIGS = {
         ["-moduli_pc_type", "gamg"] + (["-matptap_via", "allatonce"] if p > 1 else [])),
     "ASM(1) + ICC(0)": lambda p: ["-moduli_pc_type", "asm", "-moduli_pc_asm_overlap", "1",
                                  "-moduli_sub_pc_type", "icc"],
+    # the default on P > 1 until issue 19 (MUMPS available): a distributed factorisation
+    "MUMPS Cholesky": lambda p: ["-moduli_pc_type", "cholesky",
+                                 "-moduli_pc_factor_mat_solver_type", "mumps"],
     "hypre BoomerAMG": lambda p: ["-moduli_pc_type", "hypre", "-moduli_pc_hypre_type",
                                   "boomeramg", "-moduli_pc_hypre_boomeramg_nodal_coarsen", "6",
                                   "-moduli_pc_hypre_boomeramg_vec_interp_variant", "3"],
