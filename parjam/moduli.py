@@ -248,14 +248,15 @@ MAX_IT = {False: 1000, True: 10000}  # CG iteration cap: factorisation / block J
 
 
 def response_solver(comm, D, P, distributed=None):
-    """KSP: CG on D (options prefix ``moduli_``) preconditioned, on one rank (``distributed``
-    False; default: on more than one), by a Cholesky factorisation of P (MUMPS when available),
-    and on several by block Jacobi with one block per rank (PCASM, no overlap), each an incomplete
-    Cholesky ICC(0) of the rank's diagonal block of P (sub-solver prefix ``moduli_sub_``).  Block Jacobi keeps no
-    coarse operators and no factor fill, so its memory per rank does not grow with the number of
-    ranks at a fixed number of particles per rank (issue 19; docs/bench-moduli-weak.md); its
-    iterations grow with the rank count (one block per rank), hence the larger cap.  Options
-    (-moduli_pc_type gamg, -moduli_sub_pc_type ...) override both choices."""
+    """KSP: CG on D (options prefix ``moduli_``), preconditioned through P: on one rank
+    (``distributed`` False; default: the size of ``comm`` is 1) by a Cholesky factorisation of P
+    (MUMPS when available); on several by block Jacobi, one block per rank (PCASM without
+    overlap), each an incomplete Cholesky ICC(0) of the rank's diagonal block of P (sub-solver
+    prefix ``moduli_sub_``).  Block Jacobi keeps no coarse operators and no factor fill, so its
+    memory per rank does not grow with the rank count at a fixed number of particles per rank
+    (issue 19; docs/bench-moduli-weak.md); its iterations grow with the rank count (one block
+    per rank), hence the larger cap.  Options (-moduli_pc_type gamg, -moduli_sub_pc_type ...)
+    override both choices."""
     PETSc = env.petsc()
     distributed = comm.getSize() > 1 if distributed is None else distributed
     ksp = PETSc.KSP().create(comm=comm)

@@ -82,7 +82,12 @@ def main():
     ap.add_argument("--configs", nargs="+", default=list(CONFIGS)[:5], choices=list(CONFIGS))
     ap.add_argument("--work", default=None, help="directory for the tiled packings")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "bench-moduli-weak.md"))
+    ap.add_argument("--append", action="store_true", help="add the rows to --out's table")
     args = ap.parse_args()
+    head = None
+    if args.append and os.path.exists(args.out):
+        with open(args.out) as fh:
+            head = fh.read().rstrip("\n").split("\n")
     work = args.work or tempfile.mkdtemp(prefix="parjam-bench-moduli-")
     rows = []
     for spec in args.tiles:
@@ -101,7 +106,7 @@ def main():
             res = run([big, "-q"] + CONFIGS[name](ranks), ranks)
             rows.append((name, ranks, n, res, ref))
             print(table_row(*rows[-1]), flush=True)
-            write(args.out, rows)
+            write(args.out, rows, head)
 
 
 def rel(x, ref):
@@ -117,19 +122,25 @@ def table_row(name, ranks, n, res, ref):
             f"{rel(B, ref[3])} | {rel(G, ref[4])} |")
 
 
-def write(path, rows):
-    lines = ["# Moduli: peak memory per rank by preconditioner, weak scaling (issue 19)", "",
-             "Written by `scripts/bench_moduli_weak.py`: `parjam moduli` (CG to the default "
-             "relative tolerance 1e-11) on 3D packings tiled 6^3 times from small stable jammed "
-             "ones (`scripts/tile_packing.py`), one small packing per P (N = 128, 256, 512); "
-             "peak RSS per rank from /usr/bin/time (largest over the ranks); iterations = the "
-             "largest of the d(d+1)/2 solves; dB, dG = relative difference to the small "
-             "packing's moduli by the default solver (MUMPS Cholesky, one rank), which a tiled "
-             "packing shares exactly. Ranks oversubscribed on a shared 2-core machine: seconds "
-             "are indicative only. default = parjam's default: MUMPS Cholesky on one rank, "
-             "block Jacobi (PCASM without overlap) with ICC(0) blocks on several.", "",
-             "| preconditioner | P | N | N/P | MB/rank | iterations | s | B | G | dB | dG |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+HEADER = [
+    "# Moduli: peak memory per rank by preconditioner, weak scaling (issue 19)", "",
+    "Written by `scripts/bench_moduli_weak.py`: `parjam moduli` (CG to the default "
+    "relative tolerance 1e-11) on 3D packings tiled 6^3 times from small stable jammed "
+    "ones (`scripts/tile_packing.py`), one small packing per P (N = 128, 256, 512); "
+    "peak RSS per rank from /usr/bin/time (largest over the ranks); iterations = the "
+    "largest of the d(d+1)/2 solves; dB, dG = relative difference to the small "
+    "packing's moduli by the default solver (MUMPS Cholesky, one rank), which a tiled "
+    "packing shares exactly (to the 7 digits parjam prints: 0 means below 5e-7). Ranks "
+    "oversubscribed on a shared 2-core machine: seconds "
+    "are indicative only. default = parjam's default: MUMPS Cholesky on one rank, "
+    "block Jacobi (PCASM without overlap) with ICC(0) blocks on several.", "",
+    "| preconditioner | P | N | N/P | MB/rank | iterations | s | B | G | dB | dG |",
+    "|---|---|---|---|---|---|---|---|---|---|---|"]
+
+
+def write(path, rows, head=None):
+    """The page: a new table, or ``head`` (the page's lines) with the rows added."""
+    lines = head[:] if head else HEADER[:]
     lines += [table_row(*row) for row in rows]
     with open(path, "w") as fh:
         fh.write("\n".join(lines) + "\n")
