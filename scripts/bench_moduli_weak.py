@@ -8,6 +8,11 @@ number of particles per rank.  Run by hand, never in the test suite:
         --tiles 1:SMALL128.h5:6 2:SMALL256.h5:6 4:SMALL512.h5:6 \
         --out docs/bench-moduli-weak.md
 
+The run in docs/bench-moduli-weak.md used packings made by ``parjam pack --dim 3 --n N --dphi
+1e-1 3e-2 --seed 7 --members 2 --phic-method extrapolate`` (N = 128, 256, 512), the dphi = 1e-1
+state of member 1, 1, 0 (those with a positive softest shear modulus), K = 6; the MUMPS row at
+P = 2 was added with ``--configs "MUMPS Cholesky" --append``.
+
 Each ``--tiles P:SMALL:K`` is one point: the packing SMALL tiled K^d times
 (scripts/tile_packing.py) run on P ranks.  A tiled packing has exactly the moduli of its small
 one, so every point is checked against SMALL's moduli by the default solver (MUMPS Cholesky on
