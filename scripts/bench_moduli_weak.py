@@ -9,9 +9,9 @@ number of particles per rank.  Run by hand, never in the test suite:
         --out docs/bench-moduli-weak.md
 
 The run in docs/bench-moduli-weak.md used packings made by ``parjam pack --dim 3 --n N --dphi
-1e-1 3e-2 --seed 7 --members 2 --phic-method extrapolate`` (N = 128, 256, 512), the dphi = 1e-1
-state of member 1, 1, 0 (those with a positive softest shear modulus), K = 6; the MUMPS row at
-P = 2 was added with ``--configs "MUMPS Cholesky" --append``.
+1e-1 3e-2 --seed 7 --members 2 --phic-method extrapolate`` (N = 128, 256, 512, 1024), the
+dphi = 1e-1 state of member 1, 1, 0, 0 (with a positive softest shear modulus), K = 6; the MUMPS
+row at P = 2 and the P = 8 rows were added with ``--configs ... --append``.
 
 Each ``--tiles P:SMALL:K`` is one point: the packing SMALL tiled K^d times
 (scripts/tile_packing.py) run on P ranks.  A tiled packing has exactly the moduli of its small
