@@ -40,9 +40,11 @@ directions, G_min = (1/2) lambda_min of B on the deviatoric strains (orthonormal
 detects packings that are unstable to some shear in the fixed box (G_min < 0).
 
 D^+ Xi is computed with a PETSc KSP (options prefix ``moduli_``): CG on D with the translations
-attached as a MatNullSpace, preconditioned by a factorisation (default Cholesky, MUMPS when
-available) of D + tau I, tau = 1e-10 x mean diagonal (so the preconditioner is SPD); the true
-relative residual |D u - Xi| / |Xi| of every solve is reported.
+attached as a MatNullSpace, preconditioned through P = D + tau I, tau = 1e-10 x mean diagonal (so
+the preconditioner is SPD): on one rank by a Cholesky factorisation of P (MUMPS when available),
+on several by block Jacobi with an incomplete Cholesky ICC(0) of each rank's block (memory per
+rank independent of the rank count; see ``response_solver``); the true relative residual
+|D u - Xi| / |Xi| of every solve is reported.
 """
 
 from dataclasses import dataclass, field
@@ -242,24 +244,62 @@ def active_network(pack, comm=None):
     return response_system(active.from_packing(comm, pack))
 
 
-def response_solver(comm, D, P):
-    """KSP: CG on D preconditioned by a factorisation of P (options prefix ``moduli_``)."""
+MAX_IT = {False: 1000, True: 10000}  # CG iteration cap: factorisation / block Jacobi
+
+
+def response_solver(comm, D, P, distributed=None):
+    """KSP: CG on D (options prefix ``moduli_``), preconditioned through P: on one rank
+    (``distributed`` False; default: the size of ``comm`` is 1) by a Cholesky factorisation of P
+    (MUMPS when available); on several by block Jacobi, one block per rank (PCASM without
+    overlap), each an incomplete Cholesky ICC(0) of the rank's diagonal block of P (sub-solver
+    prefix ``moduli_sub_``).  Block Jacobi keeps no coarse operators and no factor fill, so its
+    memory per rank does not grow with the rank count at a fixed number of particles per rank
+    (issue 19; docs/bench-moduli-weak.md); its iterations grow with the rank count (one block
+    per rank), hence the larger cap.  Options (-moduli_pc_type gamg, -moduli_sub_pc_type ...)
+    override both choices."""
     PETSc = env.petsc()
+    distributed = comm.getSize() > 1 if distributed is None else distributed
     ksp = PETSc.KSP().create(comm=comm)
     ksp.setOptionsPrefix("moduli_")
     ksp.setOperators(D, P)
     ksp.setType("cg")
     ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
-    ksp.setTolerances(rtol=1e-11, atol=0.0, max_it=1000)
-    factor.use_cholesky(ksp.getPC(), fallback="gamg" if comm.getSize() > 1 else None)
+    ksp.setTolerances(rtol=1e-11, atol=0.0, max_it=MAX_IT[distributed])
+    pc = ksp.getPC()
+    if distributed:
+        # block Jacobi as additive Schwarz without overlap (the same operator; petsc4py 3.18
+        # reaches the blocks' solvers only through PCASM), "basic" so that CG keeps a symmetric
+        # preconditioner also if the user asks for an overlap (-moduli_pc_asm_overlap)
+        pc.setType("asm")
+        pc.setASMOverlap(0)
+        pc.setASMType(PETSc.PC.ASMType.BASIC)
+    else:
+        factor.use_cholesky(pc)
     ksp.setFromOptions()
+    if pc.getType() == "asm":
+        incomplete_cholesky_blocks(ksp)
     return ksp
 
 
-def solve_responses(comm, D, rhs, d, tau_rel=1e-10):
+def incomplete_cholesky_blocks(ksp):
+    """ICC(0) on every block of an additive-Schwarz ``ksp`` (set up here) unless the user chose
+    the blocks' PC (-moduli_sub_pc_type, read, never written): PETSc's default for AIJ blocks,
+    ILU(0), is not symmetric in floating point and has no positive-definite shift, which CG
+    needs.  ICC shifts its pivots positive (MAT_SHIFT_POSITIVE_DEFINITE, PETSc's default)."""
+    PETSc = env.petsc()
+    ksp.setUp()
+    if PETSc.Options(ksp.getOptionsPrefix() + "sub_").hasName("pc_type"):
+        return
+    for sub in ksp.getPC().getASMSubKSP():
+        sub.getPC().setType("icc")
+        sub.getPC().setFromOptions()  # -moduli_sub_pc_factor_* still apply
+
+
+def solve_responses(comm, D, rhs, d, tau_rel=1e-10, distributed=None):
     """u = D^+ Xi for every Xi in ``rhs`` (this rank's rows, (n_loc, d)); returns the matrix
     of dot products Xi_k . u_l, and the solver report.  Raises ParjamError when a solve does not
-    converge (zero modes of D beyond the translations, or a solver failure)."""
+    converge (zero modes of D beyond the translations, or a solver failure).  ``distributed``:
+    the preconditioner of ``response_solver``."""
     ns, tvecs = translations.nullspace(D, d)
     D.setNullSpace(ns)
     diag = D.getDiagonal()
@@ -267,7 +307,7 @@ def solve_responses(comm, D, rhs, d, tau_rel=1e-10):
     P = D.duplicate(copy=True)
     P.shift(tau)
     P.setNearNullSpace(ns)
-    ksp = response_solver(comm, D, P)
+    ksp = response_solver(comm, D, P, distributed)
     xis, us, report = [], [], {"iterations": [], "residuals": [], "tau": float(tau),
                                "ksp_type": ksp.getType(), "pc_type": ksp.getPC().getType(),
                                "rtol": ksp.getTolerances()[0]}
@@ -315,9 +355,10 @@ def energy_tensor(c_affine, Q, d, volume):
     return c_affine - NA / volume
 
 
-def compute(pack=None, comm=None, progress=None, net=None):
+def compute(pack=None, comm=None, progress=None, net=None, distributed=None):
     """Linear-response elastic constants on communicator ``comm`` (PETSc) of a distributed
-    active network ``net`` (parjam.active), or of a packing every rank holds."""
+    active network ``net`` (parjam.active), or of a packing every rank holds; ``distributed``
+    chooses the preconditioner (``response_solver``; default: by the size of ``comm``)."""
     PETSc = env.petsc()
     comm = comm or PETSc.COMM_WORLD
     net = net if net is not None else active.from_packing(comm, pack)
@@ -332,7 +373,7 @@ def compute(pack=None, comm=None, progress=None, net=None):
         progress(f"N' = {rs.n}, Nc = {rs.n_contacts}: {len(rhs)} linear-response solves")
     try:
         with log_stage("moduli: solve"):
-            Q, report = solve_responses(comm, D, rhs, d)
+            Q, report = solve_responses(comm, D, rhs, d, distributed=distributed)
     finally:
         D.destroy()
     c_u = energy_tensor(c_aff, Q, d, V)

@@ -10,10 +10,13 @@ def add_parser(sub):
         "moduli", help="elastic moduli B, G and the stiffness tensor by linear response",
         description="Remove rattlers, assemble the dynamical matrix D of the non-rattlers, solve "
         "D u = Xi for the force fields Xi of the d(d+1)/2 affine strains (PETSc KSP: CG with the "
-        "translations as null space, preconditioned by a Cholesky factorisation of D + tau I, "
-        "MUMPS when available; options -moduli_ksp_* -moduli_pc_*; with -moduli_pc_type gamg "
-        "on several ranks, the global -matptap_via allatonce builds GAMG's coarse operators with "
-        "about half the memory of PETSc's default; not on one rank, where it does not exist), and report the bulk modulus "
+        "translations as null space, preconditioned through D + tau I: on one rank by a "
+        "Cholesky factorisation, MUMPS when available; on several by block Jacobi with an "
+        "incomplete Cholesky ICC(0) block per rank, whose memory per rank does not grow with the "
+        "rank count; options -moduli_ksp_* -moduli_pc_* -moduli_sub_pc_*, e.g. -moduli_pc_type "
+        "gamg -moduli_pc_gamg_agg_nsmooths 0 for fewer iterations at about the same memory; "
+        "GAMG's default smoothed aggregation costs 20-30 % more memory per rank on several "
+        "ranks), and report the bulk modulus "
         "B = -V dp/dV, the isotropic shear modulus G, the smallest shear modulus over all "
         "directions (negative: unstable to some shear in the fixed box) and the residuals.")
     p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
