@@ -3,7 +3,6 @@ as arrows after 20 contacts along a vertical line are cut) and Fig. "figs" (whic
 removes).  ``python -m parjam.plot.softmodes PACKING.h5 --out-dir DIR`` writes both PNGs."""
 
 import argparse
-import dataclasses
 import os
 import sys
 
