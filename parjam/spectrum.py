@@ -323,6 +323,20 @@ def compute(comm, system, kind="full", *, k=None, window=None, method="auto", to
     return spec
 
 
+def vectors_on_root(comm, spec):
+    """A spectrum's eigenvectors (K, N', d) on rank 0 of ``comm`` in particle-id order, from
+    wherever ``compute`` left them (each rank's rows with ``vector_ids``, or rank 0); None
+    elsewhere (collective; a gather of K d N' numbers: for records and tests, not for files)."""
+    mpi = comm.tompi4py()
+    if not all(mpi.allgather(spec.vector_ids is not None)):
+        return spec.vectors if mpi.Get_rank() == 0 else None
+    ids = mpi.gather(spec.vector_ids, root=0)
+    rows = mpi.gather(spec.vectors.transpose(1, 0, 2), root=0)
+    if mpi.Get_rank() != 0:
+        return None
+    return np.concatenate(rows)[np.argsort(np.concatenate(ids))].transpose(1, 0, 2)
+
+
 # --- dense reference ---------------------------------------------------------------------------
 def dense_matrix(system, kind):
     return hessian.dense_hessian(system.n, system.d, system.i, system.j, system.blocks(kind))

@@ -154,8 +154,11 @@ def test_distributed_eigenvalues_equal_dense_lapack(name):
     assert np.abs(dense.eigenvalue - ref[d:]).max() <= 1e-12 * dense.norm
     serial = spectrum.compute(WORLD, spectrum.active_system(pack), "full", k=3,
                               method="dense", vectors=True)
+    rows = spec.vectors  # each rank's own rows (no rank holds all N')
+    assert rows.shape == (len(spec.eigenvalue), len(s.ids), d)
+    whole = spectrum.vectors_on_root(WORLD, spec)
     if COMM.rank == 0:  # vectors in the particle order of the file, as the serial ones
-        for u, v, w in zip(dense.vectors[:3], serial.vectors, spec.vectors):
+        for u, v, w in zip(dense.vectors[:3], serial.vectors, whole):
             assert abs(abs(np.vdot(u.ravel(), v.ravel())) - 1.0) < 1e-8
             assert abs(abs(np.vdot(w.ravel(), v.ravel())) - 1.0) < 1e-8
 

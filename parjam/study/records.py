@@ -72,7 +72,7 @@ def spectrum_record(comm, rows, kind, req, tol):
                    norm=specs[0].norm, n_negative=max(s.n_negative for s in specs),
                    complete=all(s.complete for s in specs))
         if req["vectors"]:
-            parts = [vectors_on_root(comm, s) for s in specs]  # collective
+            parts = [spectrum.vectors_on_root(comm, s) for s in specs]  # collective
             if comm.getRank() == 0:
                 rec["eigenvector"] = np.concatenate(parts)[first]
         if req["window"] is not None and sol == "dense-eigh":  # the dense path computed all
@@ -92,19 +92,6 @@ def spectrum_record(comm, rows, kind, req, tol):
                omega_min=float(pos.min()) if len(pos) else np.nan,
                pressure=system.pressure, complete=bool(rec["complete"]))
     return rec
-
-
-def vectors_on_root(comm, spec):
-    """A spectrum's eigenvectors (K, N', d) on rank 0 in particle-id order, from wherever
-    parjam.spectrum left them (each rank's rows, ``vector_ids``, or rank 0); None elsewhere."""
-    mpi = comm.tompi4py()
-    if not all(mpi.allgather(spec.vector_ids is not None)):
-        return spec.vectors if mpi.Get_rank() == 0 else None
-    ids = mpi.gather(spec.vector_ids, root=0)
-    rows = mpi.gather(spec.vectors.transpose(1, 0, 2), root=0)
-    if mpi.Get_rank() != 0:
-        return None
-    return np.concatenate(rows)[np.argsort(np.concatenate(ids))].transpose(1, 0, 2)
 
 
 KPM_PLATEAU = {"n_moments": 512, "n_probes": 16, "seed": 0}
