@@ -27,12 +27,9 @@ largest and the mean over the ranks and the ratio NEW / OLD of the largest.  ``-
 import argparse
 import math
 import os
-import re
-import shlex
 import subprocess
 import sys
 import tempfile
-import time
 
 import numpy as np
 
@@ -40,25 +37,16 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NEW = os.path.join(ROOT, ".venv", "bin", "parjam")
 PY = os.path.join(ROOT, ".venv", "bin", "python")
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "scripts"))
+
+from peak_rss import measured  # noqa: E402
 PARTS = ("lstar", "structure", "speeds")
-
-
-def mpirun():
-    return shlex.split(os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe"))
 
 
 def peak_rss(exe, args, ranks):
     """(largest peak RSS over the ranks in MB, mean over the ranks, seconds, exit code)."""
-    cmd = mpirun() + ["-n", str(ranks), "/usr/bin/time", "-f", "PEAKRSS %M", exe] + args
-    t0 = time.perf_counter()
-    res = subprocess.run(cmd, capture_output=True, text=True,
-                         env=dict(os.environ, OMP_NUM_THREADS="1"))
-    secs = time.perf_counter() - t0
-    kb = [int(m) for m in re.findall(r"PEAKRSS (\d+)", res.stderr)]
-    if not kb:
-        sys.stderr.write(res.stdout[-2000:] + res.stderr[-2000:])
-        raise SystemExit(f"{exe} {' '.join(args)}: no memory report")
-    return max(kb) / 1024.0, float(np.mean(kb)) / 1024.0, secs, res.returncode
+    mb, secs, res = measured(ranks, [exe] + args)
+    return max(mb), float(np.mean(mb)), secs, res.returncode
 
 
 def box(path):

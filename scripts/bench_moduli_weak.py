@@ -26,15 +26,16 @@ oversubscribed on a shared 2-core machine: seconds are indicative only).
 import argparse
 import os
 import re
-import shlex
 import subprocess
 import sys
 import tempfile
-import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EXE = os.path.join(ROOT, ".venv", "bin", "parjam")
 PY = os.path.join(ROOT, ".venv", "bin", "python")
+sys.path.insert(0, os.path.join(ROOT, "scripts"))
+
+from peak_rss import measured  # noqa: E402
 
 # name -> options of ``parjam moduli`` given P (the PC on the solver's own prefix ``moduli_``)
 CONFIGS = {
@@ -59,25 +60,13 @@ CONFIGS = {
 }
 
 
-def mpirun():
-    return shlex.split(os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe"))
-
-
 def run(args, ranks):
     """(peak RSS MB (max over ranks), seconds, exit code, B, G, iterations) of one run."""
-    cmd = mpirun() + ["-n", str(ranks), "/usr/bin/time", "-f", "PEAKRSS %M", EXE, "moduli"] + args
-    t0 = time.perf_counter()
-    res = subprocess.run(cmd, capture_output=True, text=True,
-                         env=dict(os.environ, OMP_NUM_THREADS="1"))
-    secs = time.perf_counter() - t0
-    kb = [int(m) for m in re.findall(r"PEAKRSS (\d+)", res.stderr)]
-    if not kb:
-        sys.stderr.write(res.stdout[-2000:] + res.stderr[-2000:])
-        raise SystemExit(f"moduli {' '.join(args)}: no memory report")
+    mb, secs, res = measured(ranks, [EXE, "moduli"] + args, f"moduli {' '.join(args)}")
     B = re.search(r"bulk modulus B\s+(\S+)", res.stdout)
     G = re.search(r"shear modulus G\s+(\S+)", res.stdout)
     it = re.search(r"iterations ([\d ]+),", res.stdout)
-    return (max(kb) / 1024.0, secs, res.returncode, float(B.group(1)) if B else None,
+    return (max(mb), secs, res.returncode, float(B.group(1)) if B else None,
             float(G.group(1)) if G else None, max(map(int, it.group(1).split())) if it else None)
 
 
