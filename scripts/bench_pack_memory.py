@@ -29,36 +29,27 @@ import argparse
 import json
 import os
 import re
-import shlex
 import shutil
 import subprocess
 import sys
 import tempfile
-import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PY = os.path.join(ROOT, ".venv", "bin", "python")
+sys.path.insert(0, os.path.join(ROOT, "scripts"))
 
-
-def mpirun():
-    return shlex.split(os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe"))
+from peak_rss import measured, mpirun  # noqa: E402
 
 
 def peak_rss(tree, ranks, n, dphi, seed, out):
     """(largest peak RSS over the ranks in MB, wall seconds, exit code) of one pack run."""
-    cmd = mpirun() + ["-n", str(ranks), "/usr/bin/time", "-f", "PEAKRSS %M", PY, "-m",
-                      "parjam", "pack", "--dim", "3", "--n", str(n), "--phic-method",
-                      "extrapolate", "--dphi", str(dphi), "--seed", str(seed),
-                      "--checkpoint-every", "0", "--force", "-q", "--out", out]
-    env = dict(os.environ, PYTHONPATH=tree, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    t0 = time.perf_counter()
-    res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tempfile.gettempdir())
-    secs = time.perf_counter() - t0
-    kb = [int(m) for m in re.findall(r"PEAKRSS (\d+)", res.stderr)]
-    if not kb:
-        sys.stderr.write(res.stdout[-2000:] + res.stderr[-2000:])
-        raise SystemExit(f"{tree}: no memory report")
-    return max(kb) / 1024.0, secs, res.returncode
+    argv = [PY, "-m", "parjam", "pack", "--dim", "3", "--n", str(n), "--phic-method",
+            "extrapolate", "--dphi", str(dphi), "--seed", str(seed), "--checkpoint-every", "0",
+            "--force", "-q", "--out", out]
+    mb, secs, res = measured(ranks, argv, tree, env={"PYTHONPATH": tree,
+                                                     "OPENBLAS_NUM_THREADS": "1"},
+                             cwd=tempfile.gettempdir())
+    return max(mb), secs, res.returncode
 
 
 WORKER = """

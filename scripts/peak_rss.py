@@ -14,14 +14,15 @@ def mpirun():
     return shlex.split(os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe"))
 
 
-def measured(ranks, argv, what=None):
-    """Run ``argv`` on ``ranks`` ranks, one BLAS thread each: (peak RSS per rank in MB,
-    seconds, CompletedProcess).  No memory report (the run never started) ends the benchmark
-    with the run's output and one line naming ``what`` (default the command)."""
+def measured(ranks, argv, what=None, env=None, cwd=None):
+    """Run ``argv`` on ``ranks`` ranks, one OpenMP thread each (``env``: more variables, e.g.
+    PYTHONPATH of the code under test; ``cwd``: where): (peak RSS per rank in MB, seconds,
+    CompletedProcess).  No memory report (the run never started) ends the benchmark with the
+    run's output and one line naming ``what`` (default the command)."""
     cmd = mpirun() + ["-n", str(ranks), "/usr/bin/time", "-f", "PEAKRSS %M"] + list(argv)
     t0 = time.perf_counter()
-    res = subprocess.run(cmd, capture_output=True, text=True,
-                         env=dict(os.environ, OMP_NUM_THREADS="1"))
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd,
+                         env=dict(os.environ, OMP_NUM_THREADS="1", **(env or {})))
     secs = time.perf_counter() - t0
     mb = [int(m) / 1024.0 for m in re.findall(r"PEAKRSS (\d+)", res.stderr)]
     if not mb:
