@@ -66,8 +66,12 @@ def _assert_same(out, reference, exact=True):
     """Serially: bitwise.  A member shared by 2 ranks is not bitwise reproducible even without
     interruption (its MUMPS factorisations are parallel; measured: positions of two identical
     runs differ by up to 3e-9 near phi_c), so there: the same minimum to round-off -- phi_c to
-    1e-12, pressure to 1e-7 and positions of the non-rattlers to 1e-7 after removing the global
-    translation (a zero mode, like the rattlers' positions, which are not fixed)."""
+    1e-12, pressure to 1e-5 relative and positions of the non-rattlers to 1e-7 after removing
+    the global translation (a zero mode, like the rattlers' positions, which are not fixed).
+    The pressure at phi_c (p ~ 1e-8, overlaps ~ 1e-8) moves by ~ du / overlap relative when the
+    contacts move by du: 3e-9 differences allow 1e-6 or more, and 2-rank runs on a loaded
+    machine differed by 4-7e-7 (session 12; 1e-7 failed there); another minimum would differ
+    by order one."""
     for state in STATES:
         name = f"member0000_{state}.h5"
         a, b = os.path.join(out, name), os.path.join(reference, name)
@@ -80,7 +84,7 @@ def _assert_same(out, reference, exact=True):
             phi_a, phi_b = fa["parameters"].attrs["phi_c"], fb["parameters"].attrs["phi_c"]
             assert abs(phi_a - phi_b) <= 1e-12 * phi_b, name
             pa, pb = observable(fa, "pressure"), observable(fb, "pressure")
-            assert abs(pa - pb) <= 1e-7 * pb, name
+            assert abs(pa - pb) <= 1e-5 * pb, name
             backbone = ~fb["particles/all/rattler"][()].astype(bool)
             L = fb["particles/all/box/edges/value"][0]
             du = fa["particles/all/position/value"][0] - fb["particles/all/position/value"][0]
