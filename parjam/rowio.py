@@ -30,7 +30,7 @@ line ``PATH: cannot write (No space left on device)`` before HDF5 writes anythin
 writes through a file object (h5py's ``fileobj`` driver) whose end of file is the data written,
 not the reservation.  Every method is collective: a failure on rank 0 is raised on every rank.
 
-Why one file of ~510 lines: reading and writing by row blocks share the row split
+Why one file of ~530 lines: reading and writing by row blocks share the row split
 (``active.row_block``), the collective one-line error policy and the layout of parjam's files;
 the sections are reading, writing, and the per-particle datasets of parjam's files.
 """

@@ -21,7 +21,7 @@ SLEPc/PETSc objects use the options prefix ``modes_`` (``-modes_eps_view``,
 ``-modes_st_mat_mumps_icntl_7 5``, ``-modes_eps_krylovschur_partitions 2`` ...).
 The choice of method for ``auto`` is parjam.solver_choice's.
 
-Why one file of ~670 lines: the three methods return the same :class:`Spectrum` with the same
+Why one file of ~690 lines: the three methods return the same :class:`Spectrum` with the same
 checks (residuals, zero cluster, inertia counts) and are tested against each other; the system
 (replicated or distributed, parjam.active), the dense reference, the SLEPc set-up and the
 collection of pairs are its sections.  The system section is the next to move out (to its own

@@ -27,7 +27,6 @@ largest and the mean over the ranks and the ratio NEW / OLD of the largest.  ``-
 import argparse
 import math
 import os
-import subprocess
 import sys
 import tempfile
 
@@ -40,6 +39,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "scripts"))
 
 from peak_rss import measured  # noqa: E402
+from tile_packing import weak_point  # noqa: E402
 PARTS = ("lstar", "structure", "speeds")
 
 
@@ -84,14 +84,7 @@ def main():
     work = args.work or tempfile.mkdtemp(prefix="parjam-bench-lengths-")
     rows = []
     for spec in args.tiles:
-        ranks, small, k = spec.split(":")
-        ranks, k = int(ranks), int(k)
-        tag = os.path.splitext(os.path.basename(small))[0]
-        big = os.path.join(work, f"tiled_{tag}_k{k}.h5")
-        if not os.path.exists(big):
-            made = subprocess.run([PY, os.path.join(ROOT, "scripts", "tile_packing.py"), small,
-                                   str(k), big], capture_output=True, text=True, check=True)
-            print(made.stdout.strip(), flush=True)
+        ranks, small, big = weak_point(spec, work)
         n, L, sigma = box(big)
         for part in args.parts:
             if ranks > limit.get(part, ranks):

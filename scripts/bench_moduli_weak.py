@@ -36,6 +36,7 @@ PY = os.path.join(ROOT, ".venv", "bin", "python")
 sys.path.insert(0, os.path.join(ROOT, "scripts"))
 
 from peak_rss import measured  # noqa: E402
+from tile_packing import weak_point  # noqa: E402
 
 # name -> options of ``parjam moduli`` given P (the PC on the solver's own prefix ``moduli_``)
 CONFIGS = {
@@ -85,13 +86,7 @@ def main():
     work = args.work or tempfile.mkdtemp(prefix="parjam-bench-moduli-")
     rows = []
     for spec in args.tiles:
-        ranks, small, k = spec.split(":")
-        ranks, k = int(ranks), int(k)
-        tag = os.path.splitext(os.path.basename(small))[0]
-        big = os.path.join(work, f"tiled_{tag}_{os.path.getsize(small)}_k{k}.h5")
-        if not os.path.exists(big):
-            subprocess.run([PY, os.path.join(ROOT, "scripts", "tile_packing.py"), small, str(k),
-                            big], capture_output=True, text=True, check=True)
+        ranks, small, big = weak_point(spec, work)
         ref = run([small, "-q"], 1)  # the small packing's moduli, default solver, one rank
         n = int(re.search(r"N = (\d+)", subprocess.run(
             [EXE, "analyze", "--json", big], capture_output=True, text=True,
