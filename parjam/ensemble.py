@@ -11,8 +11,8 @@ from parjam import checkpoint, faults, io, manifest, order, outputs, statefile
 from parjam.importer import from_file
 from parjam.network import analyze
 from parjam.errors import UnjammedError
-from parjam.packing import (RESOLVED_FRACTION, JamSettings, Jammer, LadderUnjammed, member_rng,
-                            random_packing)
+from parjam.packing import RESOLVED_FRACTION, JamSettings, Jammer, LadderUnjammed
+from parjam.randomstart import member_rng, start_rows
 from parjam.system import Packing
 
 
@@ -26,15 +26,12 @@ def member_states(args, member, comm, progress, checkpoint=None):
     rng = member_rng(args.seed, member)
     start_phi = args.phi if args.phi is not None else args.phi_start
     if getattr(args, "start", None):  # pack --from FILE
-
-        pack = from_file(args.start, args.alpha)
-    else:
-        pack = random_packing(args.dim, args.n, start_phi, args.alpha, args.dispersity,
-                              args.ratio, rng)
-    jammer = Jammer(comm, pack, settings_from(args), progress, checkpoint)
-    # the Jammer keeps its block rows only; the whole random start (made alike on every rank,
-    # as a serial run makes it) is not kept past here
-    del pack
+        start = from_file(args.start, args.alpha)
+    else:  # this rank's block rows of the random start: no rank makes all N particles
+        start = start_rows(comm, args.dim, args.n, start_phi, args.alpha, args.dispersity,
+                           args.ratio, rng)
+    jammer = Jammer(comm, start, settings_from(args), progress, checkpoint)
+    del start  # the Jammer keeps its block rows only
     stopped = None
     try:
         if args.phi is not None:

@@ -31,19 +31,29 @@ from parjam.system import min_image, neighbour_pairs_touching, pair_geometry, wr
 class ForceField:
     """Forces, energy and Hessian of a packing (diameters, box L, alpha) on communicator comm."""
 
-    def __init__(self, comm, diam, L, d, alpha, eps=1.0, skin=None):
+    def __init__(self, comm, diam, L, d, alpha, eps=1.0, skin=None, n=None):
+        """``diam``: all N diameters (not kept), or given ``n`` only those of this rank's block
+        rows (hessian.row_range(n, comm)): then no rank holds N of them."""
         PETSc = env.petsc()
         self.comm = comm
         self.mpi = comm.tompi4py()
-        diam = np.asarray(diam, dtype=np.float64)  # all N (before any minimisation), not kept
-        self.n = len(diam)
+        diam = np.asarray(diam, dtype=np.float64)
+        self.n = len(diam) if n is None else int(n)
         self.d = d
         self.alpha = alpha
         self.eps = eps
-        self.dmin, self.dmax = float(diam.min()), float(diam.max())
-        self.skin = 0.2 * self.dmin if skin is None else skin
         self.lo, self.hi = hessian.row_range(self.n, comm)
-        self.diam_rows = np.array(diam[self.lo:self.hi])  # the diameters of the block rows
+        if n is None:
+            self.dmin, self.dmax = float(diam.min()), float(diam.max())
+            diam = diam[self.lo:self.hi]
+        elif len(diam) != self.hi - self.lo:
+            raise ValueError(f"{len(diam)} diameters for block rows [{self.lo}, {self.hi})")
+        else:
+            ends = np.array([-diam.min(), diam.max()] if len(diam) else [-np.inf, -np.inf])
+            self.mpi.Allreduce(ends.copy(), ends, op=_max())
+            self.dmin, self.dmax = -float(ends[0]), float(ends[1])
+        self.skin = 0.2 * self.dmin if skin is None else skin
+        self.diam_rows = np.array(diam)  # the diameters of the block rows
         self.x = PETSc.Vec().createMPI(((self.hi - self.lo) * d, self.n * d), bsize=d, comm=comm)
         self.scatter = self.xall = None  # the gather to all ranks, made when asked (gather)
         self.engine = None  # the SlabEngine while FIRE runs (start_engine)

@@ -36,16 +36,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import env, jamnet, minimize, stability
+from parjam import env, exactsum, hessian, jamnet, minimize, stability
 from parjam.errors import ParjamError, UnjammedError
 from parjam.forces import ForceField
 from parjam.logstage import log_stage
 from parjam.statefile import StateRows
 from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW,
                              DEFAULT_FTOL, DEFAULT_PHI_START, DEFAULT_RATIO)
+# the random start lives in parjam.randomstart; these names stay importable from here
+from parjam.randomstart import DISPERSITIES, member_rng, random_packing, start_rows  # noqa: F401
 from parjam.system import Packing, sphere_volume, wrap
 
-DISPERSITIES = ("mono", "bi", "poly")
 PHI_MAX = {2: 0.99, 3: 0.9}  # the phi_c search gives up above these (nothing jams so late)
 # phi_c refinement: each step decompresses to 1/REFINE_RATIO of the estimated distance to phi_c
 REFINE_RATIO = 30.0
@@ -63,56 +64,20 @@ REL_BALANCE = 1e-5
 FORCE_FLOOR = 2e-15
 
 
-def diameters(n, dispersity="mono", ratio=DEFAULT_RATIO, rng=None):
-    """Diameters with the smallest equal to 1: mono; bi (50:50, large/small = ratio); poly
-    (uniform between 1 and ratio)."""
-    if dispersity == "mono":
-        return np.ones(n), np.zeros(n, dtype=np.int32)
-    if not np.isfinite(ratio) or ratio < 1.0:
-        raise ParjamError(f"diameter ratio must be >= 1, got {ratio}")
-    if dispersity == "bi":
-        species = (np.arange(n) >= n // 2).astype(np.int32)
-        return np.where(species == 1, ratio, 1.0), species
-    if dispersity == "poly":
-        return 1.0 + (ratio - 1.0) * rng.random(n), np.zeros(n, dtype=np.int32)
-    raise ParjamError(f"unknown dispersity {dispersity!r}; choose from {', '.join(DISPERSITIES)}")
-
-
-def member_rng(seed, member):
-    """Independent, reproducible stream for member m, whatever the number of ranks."""
-    return np.random.default_rng(np.random.SeedSequence([int(seed), int(member)]))
-
-
-def random_packing(d, n, phi, alpha=DEFAULT_ALPHA, dispersity="mono", ratio=DEFAULT_RATIO,
-                   rng=None):
-    """Uniform random positions at volume fraction phi: an infinite-temperature configuration."""
-    rng = rng if rng is not None else np.random.default_rng()
-    diam, species = diameters(n, dispersity, ratio, rng)
-    L = float((sphere_volume(diam, d).sum() / phi) ** (1.0 / d))
-    pos = rng.uniform(0.0, L, size=(n, d))
-    pos[pos >= L] = 0.0
-    order = spatial_order(pos, L, 2.0 * diam.max())
-    return Packing(pos[order], diam[order], L, alpha, meta={"species": species[order]})
-
-
-def spatial_order(pos, L, cell):
-    """Permutation that numbers the particles cell by cell (cells of edge >= ``cell``, in
-    lexicographic order): neighbours get nearby indices, so the force kernel and the matrices
-    touch nearby memory, and the contiguous row blocks of the MPI ranks are compact slabs with
-    few couplings between ranks.  A 3D N = 10^5 force evaluation costs 12 ms instead of 21 ms in
-    random order.  The particles are independent and identically placed, so this is the same
-    random configuration."""
-    m = max(1, int(L // cell))
-    idx = np.minimum((pos / L * m).astype(np.int64), m - 1)
-    key = np.zeros(len(pos), dtype=np.int64)
-    for k in range(pos.shape[1]):
-        key = key * m + idx[:, k]
-    return np.argsort(key, kind="stable")
-
-
 def per_particle(value, n):
     """Whether a metadata value is a per-particle array (n rows)."""
     return isinstance(value, np.ndarray) and value.ndim >= 1 and len(value) == n
+
+
+def block_rows(comm, pack):
+    """This rank's block rows (statefile.StateRows, PETSc's contiguous split of the ids) of a
+    whole Packing every rank holds."""
+    lo, hi = hessian.row_range(pack.n, comm)
+    rows = {k for k, v in pack.meta.items() if per_particle(v, pack.n)}
+    meta = {k: (np.array(v[lo:hi]) if k in rows else v) for k, v in pack.meta.items()}
+    return StateRows(comm, pack.n, pack.L, pack.alpha, pack.eps, pack.phi, lo,
+                     np.array(pack.pos[lo:hi]), np.array(pack.diam[lo:hi]), meta,
+                     frozenset(rows))
 
 
 class LadderUnjammed(UnjammedError):
@@ -164,6 +129,9 @@ class Jammer:
     """Minimises one configuration at chosen volume fractions on communicator ``comm``."""
 
     def __init__(self, comm, pack, settings=None, progress=None, checkpoint=None):
+        """``pack``: a whole system.Packing (the same on every rank), or this rank's block rows
+        of one (statefile.StateRows; the random start of parjam.randomstart.start_rows): then
+        no rank ever holds all N particles."""
         self.comm = comm
         self.settings = settings or JamSettings()
         self.progress = progress
@@ -171,16 +139,20 @@ class Jammer:
         self.calls = 0  # minimisations so far: the key of their checkpoint records
         # the state: positions only in the force field's block rows (no rank keeps all N of
         # them, the States and their files included: ``state_rows``); box, diameters and constants
-        self.n, self.d, self.L = pack.n, pack.d, pack.L
-        self.alpha, self.eps = pack.alpha, pack.eps
-        self.sphere_volume = sphere_volume(pack.diam, self.d).sum()
-        self.ff = ForceField(comm, pack.diam, pack.L, pack.d, pack.alpha, pack.eps)
-        self.ff.set_positions(pack.pos)
+        rows = pack if isinstance(pack, StateRows) else block_rows(comm, pack)
+        self.n, self.d, self.L = rows.n, rows.d, rows.L
+        self.alpha, self.eps = rows.alpha, rows.eps
+        # the sum of all N sphere volumes as numpy sums the whole array (bitwise on any P)
+        self.sphere_volume = exactsum.total(comm, sphere_volume(rows.diam, self.d), rows.lo,
+                                            self.n)
+        self.ff = ForceField(comm, rows.diam, rows.L, rows.d, rows.alpha, rows.eps, n=rows.n)
+        if rows.lo != self.ff.lo or len(rows.x) != self.ff.hi - self.ff.lo:
+            raise ValueError(f"rows [{rows.lo}, {rows.lo + len(rows.x)}) are not the force "
+                             f"field's block [{self.ff.lo}, {self.ff.hi})")
+        self.ff.local(self.ff.x)[:] = rows.x
         # per-particle metadata (species) kept as the block rows, like the diameters
-        lo, hi = self.ff.lo, self.ff.hi
-        self.meta = {k: (np.array(v[lo:hi]) if per_particle(v, self.n) else v)
-                     for k, v in pack.meta.items()}
-        self.row_meta = {k for k, v in pack.meta.items() if per_particle(v, self.n)}
+        self.meta = {k: (np.array(v) if k in rows.row_meta else v) for k, v in rows.meta.items()}
+        self.row_meta = set(rows.row_meta)
         self.total_fire = 0
         self.total_newton = 0
         # minimiser steps: a line every 10 s at most (only long minimisations show them)
@@ -668,8 +640,8 @@ def make_jammed(d, n, dphis, seed=0, member=0, dispersity=None, ratio=DEFAULT_RA
     comm = PETSc.COMM_SELF if comm is None else comm
     dispersity = dispersity or DEFAULT_DISPERSITY[d]
     phi0 = phi_start or DEFAULT_PHI_START[d]
-    pack = random_packing(d, n, phi0, alpha, dispersity, ratio, member_rng(seed, member))
-    jam = Jammer(comm, pack, settings)
+    jam = Jammer(comm, start_rows(comm, d, n, phi0, alpha, dispersity, ratio,
+                                  member_rng(seed, member)), settings)
     try:
         jam.find_phi_c()  # the bisection, then the refinement from the jammed side
         phi_c = jam.refine_phi_c(min(dphis) if len(dphis) else 1e-6)["phi_c"]
