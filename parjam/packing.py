@@ -1,5 +1,6 @@
-"""Jammed packings: random (infinite-temperature) starts, the O'Hern bisection to phi_c, the
-dphi ladder (compression up from phi_c, or decompression down to it) and target pressures.
+"""Jammed packings: the O'Hern bisection to phi_c, the dphi ladder (compression up from phi_c,
+or decompression down to it) and target pressures, from a random (infinite-temperature) start
+(parjam.randomstart; its names stay importable from here).
 
 O'Hern, Silbert, Liu & Nagel, PRE 68, 011306 (2003): a configuration is compressed or
 decompressed and re-minimised until its energy per particle lies in a tiny window above zero;
@@ -20,11 +21,12 @@ unjams ends the ladder with ``LadderUnjammed``, which carries the jammed states 
 
 On the decomposition (issue 18): the Jammer holds the state in its force field's PETSc block
 rows (positions, diameters, species of this rank's rows; box and constants), never all N of
-them.  Every per-state number comes from parjam.jamnet on the slabs (``network``), the stability
-check and the escapes from parjam.stability on the same half-edges, Newton from the force
-field's distributed neighbour list; a State keeps its block rows (``state_rows``,
-parjam.statefile), from which parjam.ensemble writes its file by row blocks.  On one rank
-every number is the serial one bitwise.
+them, and starts from them (parjam.randomstart.start_rows makes a random start's rows; a whole
+Packing is cut into them).  Every per-state number comes from parjam.jamnet on the slabs
+(``network``), the stability check and the escapes from parjam.stability on the same
+half-edges, Newton from the force field's distributed neighbour list; a State keeps its block
+rows (``state_rows``, parjam.statefile), from which parjam.ensemble writes its file by row
+blocks.  On one rank every number is the serial one bitwise.
 
 (Over 500 lines: the Jammer is one state machine over one force field and its checkpoint; every
 minimisation, the escapes' and the cycles' included, goes through its checkpointed ``relax``, so

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from parjam import env, exactsum, randomstart
+from parjam import exactsum, randomstart
 from parjam.active import row_block
 from parjam.io import observable
 from parjam.packing import Jammer

@@ -2,7 +2,7 @@
 """Halo of the force evaluation: how many non-owned particles a rank fetches per evaluation
 (ForceField._build_halo) when N particles are split over P ranks, for the scaling model of
 docs/scaling.md.  No MPI needed: the ranks' contiguous blocks of the cell-ordered numbering
-(parjam.packing.spatial_order, hessian.row_range) are formed here, on uniform random positions
+(parjam.randomstart.spatial_order, hessian.row_range) are formed here, on uniform random positions
 at phi (the halo is geometry: the jammed structure changes it little).
 
     .venv/bin/python scripts/hpc/halo_sizes.py --n 100000 1000000 --ranks 2 8 64 256 1024
