@@ -152,13 +152,16 @@ def spatial_rows(comm, lo, x, fields, L, dmax, n):
     starts = block_starts(comm, n)
     # a bin goes to the rank whose block holds its first particle: sorted ranges of the order
     home = np.searchsorted(starts, np.cumsum(hist) - hist, side="right") - 1
-    _, got = send_rows(mpi, np.minimum(home[bins], size - 1), draw,
-                       dict(fields, x=x, key=key))  # back sorted by draw index
-    order = np.argsort(got["key"], kind="stable")  # by (key, draw)
+    dest = np.minimum(home[bins], size - 1)
+    del key, bins  # (the receiver recomputes the keys of its rows)
+    _, got = send_rows(mpi, dest, draw, dict(fields, x=x))  # back sorted by draw index
+    del dest, draw
+    order = np.argsort(cell_keys(got["x"], L, m), kind="stable")  # by (key, draw)
+    got = {k: v[order] for k, v in got.items()}
     first = mpi.exscan(len(order)) or 0
     new = first + np.arange(len(order), dtype=np.int64)
-    dest = np.searchsorted(starts, new, side="right") - 1
-    ids, out = send_rows(mpi, dest, new, {k: got[k][order] for k in list(fields) + ["x"]})
+    del order
+    ids, out = send_rows(mpi, np.searchsorted(starts, new, side="right") - 1, new, got)
     a, b = row_block(n, comm)
     if not np.array_equal(ids, np.arange(a, b)):
         raise AssertionError("parjam: the spatial order lost or repeated a particle")
