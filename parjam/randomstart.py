@@ -75,15 +75,6 @@ def diameter_rows(a, b, n, dispersity, ratio, rng):
     return 1.0 + (ratio - 1.0) * stream_at(rng, a).random(b - a), np.zeros(b - a, np.int32)
 
 
-def diameters(n, dispersity="mono", ratio=DEFAULT_RATIO, rng=None):
-    """All n diameters and species (``diameter_rows`` of [0, n)); a poly draw consumes n words
-    of ``rng``."""
-    out = diameter_rows(0, n, n, dispersity, ratio, rng)
-    if diameter_draws(n, dispersity):
-        rng.bit_generator.advance(n)
-    return out
-
-
 def position_rows(a, b, n, d, L, dispersity, rng):
     """Uniform positions in [0, L)^d of the particles with draw indices [a, b) (one draw per
     coordinate, row by row, after the diameters'); a draw that rounds to L is put at 0."""
