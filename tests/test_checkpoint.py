@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import subprocess_env
 
-from parjam import checkpoint, cli, manifest
+from parjam import checkpoint, checkpointio, cli, manifest
 from parjam.io import observable
 from parjam.errors import ParjamError
 from parjam.engine import SlabEngine
@@ -189,7 +189,7 @@ def test_foreign_or_unreadable_checkpoint_is_ignored(world, shared_tmp, referenc
             with open(path, "wb") as fh:
                 fh.write(b"not an HDF5 file")
         else:
-            rec = {"pos": np.zeros((64, 3)), "L": 1.0, "force_calls": 1,
+            rec = {"file": "done00000.g0000001.h5", "L": 1.0, "force_calls": 1,
                    "result": MinResult("converged", 0.0, 0.0)}
             checkpoint.write_file(path, '{"other": 1}', [rec], None)
     MPI.COMM_WORLD.Barrier()
@@ -267,9 +267,10 @@ def test_killed_process_resumes_from_its_checkpoint(tmp_path):
     _assert_same(out, str(tmp_path / "ref"))
 
 
-def test_finished_positions_reach_rank_0_block_by_block_and_come_back(world, shared_tmp):
-    """A finished minimisation's positions are held by rank 0 only (the writer), exactly; the
-    file it writes replays them into every rank's block rows, bitwise, on a fresh checkpoint."""
+def test_finished_positions_go_to_a_piece_by_rows_and_come_back(world, shared_tmp):
+    """A finished minimisation's positions are held by no rank after ``finish``: they are in
+    its piece file, exactly, written from every rank's block rows; a fresh checkpoint replays
+    them into every rank's block rows, bitwise, each rank reading its own rows."""
     pack = random_packing(3, 96, 0.70, rng=np.random.default_rng(3))
     path = os.path.join(shared_tmp, "rows", "member0000.h5")
     ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
@@ -278,11 +279,9 @@ def test_finished_positions_reach_rank_0_block_by_block_and_come_back(world, sha
         ck = checkpoint.Checkpoint(path, world, 1e-9, {"test": "rows"})
         ck.finish(0, ff, pack.L, MinResult("converged", 1.0, 0.0), 5)
         rec = ck.finished(0)
-        if world.getRank() == 0:
-            assert np.array_equal(rec["pos"], pack.pos)
-        else:
-            assert rec["pos"] is None
-        assert rec["L"] == pack.L and rec["force_calls"] == 5
+        assert "pos" not in rec and rec["L"] == pack.L and rec["force_calls"] == 5
+        with h5py.File(os.path.join(checkpointio.pieces_dir(path), rec["file"]), "r") as f:
+            assert np.array_equal(f["pos"][()], pack.pos)
         world.tompi4py().Barrier()
         again = checkpoint.Checkpoint(path, world, 1e-9, {"test": "rows"})
         assert again.loaded
