@@ -9,8 +9,8 @@ Layout (FORMAT 2), for member M of run directory DIR:
   ``done/KKKKK`` per finished minimisation and a group ``pending`` for the one in progress hold
   their scalars (box edge, result, counters; FIRE's time step, mixing, step...) and the name of
   the *piece* file with their rows.  The index names the valid pieces: nothing else counts.
-- ``DIR/.checkpoint/memberMMMM.d/``, the pieces: ``doneKKKKK.gGGGGGG.h5`` (dataset ``pos``,
-  (N, d), the positions a minimisation ended at) and ``pending.gGGGGGG.h5`` (``pos`` and ``v``,
+- ``DIR/.checkpoint/memberMMMM.d/``, the pieces: ``doneKKKKK.gGGGGGGG.h5`` (dataset ``pos``,
+  (N, d), the positions a minimisation ended at) and ``pending.gGGGGGGG.h5`` (``pos`` and ``v``,
   the positions and FIRE velocities of a snapshot), in particle-id order.  Each is written once,
   by row blocks (parjam.rowio.rows_file: rank 0 receives every rank's block in pieces of at most
   rowio.CHUNK_BYTES, the disk space reserved first, then fsync and an atomic rename), and never
@@ -44,7 +44,7 @@ def pieces_dir(index):
 
 
 def piece_name(kind, generation, call=None):
-    """``doneKKKKK.gGGGGGG.h5`` or ``pending.gGGGGGG.h5``."""
+    """``doneKKKKK.gGGGGGGG.h5`` or ``pending.gGGGGGGG.h5``."""
     stem = "pending" if call is None else f"done{call:05d}"
     return f"{stem}.g{generation:07d}.h5"
 
