@@ -71,7 +71,7 @@ class MinResult:
 class FireState:
     """FIRE's dynamical state besides the positions: enough to continue a run exactly."""
 
-    v: np.ndarray  # velocities of all particles, (n, d)
+    v: np.ndarray  # velocities of this rank's block rows [ff.lo, ff.hi), (hi - lo, d)
     dt: float
     a: float
     n_pos: int
@@ -109,9 +109,11 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snaps
     each rank's slab of particles, a step is one compiled update + ghost refresh + forces and
     one allreduce, and the positions return to ff.x at the end.
 
-    ``start`` (a FireState) continues an interrupted run from its velocities, time step and
-    counters.  Every SNAPSHOT_EVERY steps ``snapshot(make_state)`` is called, if given, on all
-    ranks; ``make_state()`` (collective) returns the current FireState (parjam.checkpoint).
+    ``start`` (a FireState) continues an interrupted run from its velocities (this rank's
+    block rows), time step and counters.  Every SNAPSHOT_EVERY steps ``snapshot(make_state)``
+    is called, if given, on all ranks; ``make_state()`` (collective) returns the current
+    FireState, its velocities handed from the engine's rows to the block rows (no rank gathers
+    all N; parjam.checkpoint writes them by row blocks).
     At those steps, on several ranks, the decomposition is redone from the positions alone
     (``SlabEngine.resync``) whether or not a snapshot is taken: sums over particles depend on
     which rank owns what in round-off, and a run resumed from a snapshot starts its
@@ -120,7 +122,7 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snaps
     dt, a, n_pos, step = p.dt, p.a0, 0, 0
     v0 = None
     if start is not None:
-        v0 = np.array(start.v[ff.lo:ff.hi], dtype=np.float64)
+        v0 = np.array(start.v, dtype=np.float64)
         dt, a, n_pos, step = start.dt, start.a, start.n_pos, start.step
     eng = ff.start_engine(v0)
     ff.n_force_calls += 1
@@ -128,7 +130,7 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snaps
     status = "not converged"
 
     def make_state():
-        return FireState(ff.gather_engine(eng.v), dt, a, n_pos, step)
+        return FireState(ff.block_rows(eng.v), dt, a, n_pos, step)
 
     for step in range(step + 1, p.max_steps + 1):
         if s.energy < e_stop:

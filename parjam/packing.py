@@ -239,12 +239,11 @@ class Jammer:
 
     def _resume(self, call):
         """The MinimiseState of minimisation ``call`` if a checkpoint caught it in progress
-        (its positions are set), else None."""
-        found = self.checkpoint.in_progress(call)
+        (its positions are set: each rank reads its block rows of the snapshot), else None."""
+        found = self.checkpoint.in_progress(call, self.ff)
         if found is None:
             return None
-        pos, earlier_calls, state = found
-        self.ff.set_positions(pos)
+        earlier_calls, state = found
         self.ff.n_force_calls += earlier_calls  # those of the interrupted run
         self._log(f"resuming minimisation {call + 1} from its checkpoint (FIRE step "
                   f"{state.fire.step} of round {state.round})")
@@ -252,7 +251,7 @@ class Jammer:
 
     def _replay(self, call, record):
         """A minimisation of an earlier run, from its checkpoint record (collective: each rank
-        receives its block rows of the positions)."""
+        reads its block rows of the positions)."""
         self.L = record["L"]
         self.ff.set_box(self.L)
         self.checkpoint.replay_rows(call, self.ff)

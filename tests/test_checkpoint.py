@@ -5,6 +5,7 @@ with the two ranks sharing the member (distributed minimisation: there the same 
 round-off, as between two uninterrupted runs)."""
 
 import os
+import shutil
 import subprocess
 import sys
 
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 from conftest import subprocess_env
 
-from parjam import checkpoint, cli, manifest
+from parjam import checkpoint, checkpointio, cli, manifest
 from parjam.io import observable
 from parjam.errors import ParjamError
 from parjam.engine import SlabEngine
@@ -189,7 +190,7 @@ def test_foreign_or_unreadable_checkpoint_is_ignored(world, shared_tmp, referenc
             with open(path, "wb") as fh:
                 fh.write(b"not an HDF5 file")
         else:
-            rec = {"pos": np.zeros((64, 3)), "L": 1.0, "force_calls": 1,
+            rec = {"file": "done00000.g0000001.h5", "L": 1.0, "force_calls": 1,
                    "result": MinResult("converged", 0.0, 0.0)}
             checkpoint.write_file(path, '{"other": 1}', [rec], None)
     MPI.COMM_WORLD.Barrier()
@@ -267,9 +268,10 @@ def test_killed_process_resumes_from_its_checkpoint(tmp_path):
     _assert_same(out, str(tmp_path / "ref"))
 
 
-def test_finished_positions_reach_rank_0_block_by_block_and_come_back(world, shared_tmp):
-    """A finished minimisation's positions are held by rank 0 only (the writer), exactly; the
-    file it writes replays them into every rank's block rows, bitwise, on a fresh checkpoint."""
+def test_finished_positions_go_to_a_piece_by_rows_and_come_back(world, shared_tmp):
+    """A finished minimisation's positions are held by no rank after ``finish``: they are in
+    its piece file, exactly, written from every rank's block rows; a fresh checkpoint replays
+    them into every rank's block rows, bitwise, each rank reading its own rows."""
     pack = random_packing(3, 96, 0.70, rng=np.random.default_rng(3))
     path = os.path.join(shared_tmp, "rows", "member0000.h5")
     ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
@@ -278,11 +280,9 @@ def test_finished_positions_reach_rank_0_block_by_block_and_come_back(world, sha
         ck = checkpoint.Checkpoint(path, world, 1e-9, {"test": "rows"})
         ck.finish(0, ff, pack.L, MinResult("converged", 1.0, 0.0), 5)
         rec = ck.finished(0)
-        if world.getRank() == 0:
-            assert np.array_equal(rec["pos"], pack.pos)
-        else:
-            assert rec["pos"] is None
-        assert rec["L"] == pack.L and rec["force_calls"] == 5
+        assert "pos" not in rec and rec["L"] == pack.L and rec["force_calls"] == 5
+        with h5py.File(os.path.join(checkpointio.pieces_dir(path), rec["file"]), "r") as f:
+            assert np.array_equal(f["pos"][()], pack.pos)
         world.tompi4py().Barrier()
         again = checkpoint.Checkpoint(path, world, 1e-9, {"test": "rows"})
         assert again.loaded
@@ -291,3 +291,120 @@ def test_finished_positions_reach_rank_0_block_by_block_and_come_back(world, sha
         assert np.array_equal(ff.local(ff.x), pack.pos[ff.lo:ff.hi])
     finally:
         ff.destroy()
+
+
+@pytest.mark.parametrize("step", ["done-piece", "snapshot-piece", "index"])
+def test_stopped_between_the_steps_of_a_write_resumes(world, shared_tmp, monkeypatch, reference,
+                                                      step):
+    """Stopped between the steps of a checkpoint write -- after the piece of a finished
+    minimisation, or of a snapshot, but before the index that would name it; or after the index
+    but before the pieces it no longer names are removed -- the index on disk is valid (it names
+    only whole pieces, the others are orphans): the run resumes from it and ends with the
+    reference's files and no checkpoint left."""
+    out = os.path.join(shared_tmp, f"ckpt-stop-{step}")
+    seen = {"n": 0}
+    if step == "index":
+        monkeypatch.setattr(checkpointio, "remove_unnamed", lambda index, keep: None)
+        real = checkpoint.Checkpoint.write
+
+        def stopping(self):
+            real(self)
+            seen["n"] += 1
+            if seen["n"] == 100:
+                raise Stop("stopped before the unnamed pieces are removed")
+
+        monkeypatch.setattr(checkpoint.Checkpoint, "write", stopping)
+    else:
+        # of a run's 9 finished minimisations and ~190 snapshots
+        kind, k = ("pending", 100) if step == "snapshot-piece" else ("done", 5)
+        real = checkpointio.write_rows
+
+        def stopping(comm, piece, blocks):
+            real(comm, piece, blocks)
+            if os.path.basename(piece).startswith(kind):
+                seen["n"] += 1
+                if seen["n"] == k:
+                    raise Stop(f"stopped after {piece}")
+
+        monkeypatch.setattr(checkpointio, "write_rows", stopping)
+    assert _pack(out) == Stop.exit_code
+    monkeypatch.undo()
+    path = checkpoint.path_for(out, 0)
+    if world.getRank() == 0:
+        index = checkpointio.read_index(path)  # valid, its pieces all there
+        named = {rec["file"] for rec in index["done"]}
+        named |= {index["pending"]["file"]} if index["pending"] else set()
+        orphans = set(os.listdir(checkpointio.pieces_dir(path))) - named
+        assert orphans and all(n.startswith("pending" if step != "done-piece" else "done")
+                               for n in orphans), orphans
+    world.tompi4py().Barrier()
+    assert _pack(out) == 0
+    _assert_same(out, reference, exact=world.getSize() == 1)
+    assert not os.path.exists(os.path.join(out, checkpoint.DIRECTORY))
+
+
+def test_checkpoint_of_the_format_before_is_ignored_with_a_note(world, shared_tmp, reference):
+    """A checkpoint of parjam's earlier format (FORMAT 1: one HDF5 file holding every record's
+    positions) is not read: one note says so, and the member is computed afresh."""
+    out = os.path.join(shared_tmp, "ckpt-format1")
+    path = checkpoint.path_for(out, 0)
+    if world.getRank() == 0:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with h5py.File(path, "w") as f:  # the layout of that format
+            f.attrs.update({"format": 1, "params": "{}"})
+            g = f.create_group("done/00000")
+            g["pos"] = np.zeros((64, 3))
+            g.attrs.update({"L": 1.0, "force_calls": 1, "status": "converged", "energy": 0.0,
+                            "fmax": 0.0, "fire_steps": 1, "newton_steps": 0})
+    world.tompi4py().Barrier()
+    notes = []
+    ck = checkpoint.Checkpoint(path, world, 1e-9, {"member": 0}, progress=notes.append)
+    assert not ck.loaded
+    assert len(notes) == 1 and "earlier format 1" in notes[0] and "ignored" in notes[0], notes
+    assert _pack(out) == 0
+    _assert_same(out, reference, exact=world.getSize() == 1)
+    assert not os.path.exists(os.path.join(out, checkpoint.DIRECTORY))
+
+
+STOP_AT = """
+import sys
+from parjam import checkpoint, cli
+from parjam.errors import ParjamError
+real, k, seen = checkpoint.Checkpoint.write, int(sys.argv[1]), []
+def stopping(self):
+    real(self)
+    seen.append(1)
+    if len(seen) == k:
+        raise ParjamError("stopped")
+checkpoint.Checkpoint.write = stopping
+sys.exit(cli.main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.serial
+def test_checkpoint_written_on_2_ranks_resumes_on_1_and_3(tmp_path):
+    """The files are in particle-id order, whatever the ranks that wrote them: a checkpoint of a
+    member shared by 2 ranks (stopped at its 100th write of ~200) resumes on 1 and on 3 ranks, each
+    reading its own rows, to the same minima as the uninterrupted 2-rank run (to round-off:
+    FIRE's sums over particles depend on the decomposition in round-off, as between 2-rank
+    runs)."""
+    mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
+    args = ARGS[:-1] + ["--checkpoint-every", "1e-9"]
+
+    def run(ranks, out, *head):
+        cmd = ([] if ranks == 1 else mpirun + ["-n", str(ranks)]) + [sys.executable, *head]
+        return subprocess.run(cmd + args + ["--out", str(out)], env=subprocess_env(),
+                              capture_output=True, text=True, timeout=600)
+
+    ref = run(2, tmp_path / "ref", "-m", "parjam")
+    assert ref.returncode == 0, ref.stderr
+    r = run(2, tmp_path / "run", "-c", STOP_AT, "100")
+    assert r.returncode == 2 and "stopped" in r.stderr, r.stderr
+    for ranks in (1, 3):
+        out = tmp_path / f"on{ranks}"
+        shutil.copytree(tmp_path / "run", out)
+        r = run(ranks, out, "-m", "parjam")
+        assert r.returncode == 0, r.stderr
+        assert "resuming from" in r.stderr and "minimisations finished" in r.stderr, r.stderr
+        _assert_same(str(out), str(tmp_path / "ref"), exact=False)
+        assert not os.path.exists(out / checkpoint.DIRECTORY)

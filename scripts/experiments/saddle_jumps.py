@@ -113,7 +113,8 @@ def make_fire(K):
                 stats["checks"] += 1
                 if jump(ff):
                     stats["jumps"] += 1
-                    state = minimize.FireState(np.zeros((ff.n, ff.d)), p.dt, p.a0, 0, done)
+                    state = minimize.FireState(np.zeros((ff.hi - ff.lo, ff.d)), p.dt, p.a0, 0,
+                                                done)
                 stats["t_checks"] += time.perf_counter() - t
     return fire
 
