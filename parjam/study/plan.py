@@ -73,6 +73,8 @@ def spectrum_needs(scene, system):
             state, {"all": False, "k": 0, "window": None, "per_mode": False, "vectors": False})
         if kw.get("kpm_plateau"):
             d["kpm_plateau"] = True  # only when asked: the other stage keys stay as they were
+        if kw.get("kpm"):
+            d["kpm"] = kw["kpm"]  # D(omega) by KPM (parjam.kpm_dos), likewise only when asked
         d["all"] |= kw.get("all", False)
         d["k"] = max(d["k"], kw.get("k") or 0)
         d["per_mode"] |= kw.get("per_mode", False)
@@ -85,9 +87,14 @@ def spectrum_needs(scene, system):
     obs = scene.observables
     if "dos" in obs:
         o = obs["dos"]
+        kpm = ({q: o[q] for q in ("moments", "probes", "max_moments")}
+               if o.get("method") == "kpm" else None)
         for m in o["matrices"]:
             for s in o["at"]:
-                want(m, s, all=o["window"] is None, window=o["window"])
+                if kpm:
+                    want(m, s, kpm=kpm)
+                else:
+                    want(m, s, all=o["window"] is None, window=o["window"])
     if "omega_star" in obs:
         o = obs["omega_star"]
         for m in o["matrices"]:
@@ -111,6 +118,8 @@ def choose_solver(req, system, solver):
     scene's [solver] limits; a dense solve is "dense-eigvalsh" (eigenvalues only) unless
     per-mode sums or vectors are wanted."""
     dof = system.max_dof
+    if req.get("kpm") and not (req["all"] or req["k"] or req["window"] is not None):
+        return "kpm"  # D(omega), D0 and omega* from KPM moments alone (parjam.kpm_dos)
     limits = solver_choice.Limits(whole_max_dof=solver["dense_max_dof"],
                                   partial_dense_max_dof=solver["small_dof"])
     try:
@@ -227,6 +236,10 @@ def describe(scene, stages):
                 extra = ", per-mode sums" if p["per_mode"] else ""
                 extra += ", eigenvectors stored" if p["vectors"] else ""
                 extra += ", D0 from KPM" if p.get("kpm_plateau") and not p["all"] else ""
+                if p.get("kpm"):
+                    what += " + KPM" if p["all"] or p["window"] or p["k"] else ""
+                    what = "KPM" if p["solver"] == "kpm" else what
+                    extra += f", {p['kpm']['moments']} moments x {p['kpm']['probes']} probes"
                 lines.append(f"      {state:<12} {what}{extra}: {p['solver']}")
         else:
             lines.append(f"      states {', '.join(st.states)}; {st.solvers()}")
