@@ -25,7 +25,7 @@ from parjam import kpm, spectrum, translations
 from parjam.logstage import log_stage
 
 RESOLUTION = np.pi / 2  # Delta omega = RESOLUTION sqrt(lambda_max) / M
-RESOLVED = 8.0  # omega*_KPM / Delta omega above which omega* is kept
+RESOLVED = 20.0  # omega*_KPM / Delta omega above which omega* is kept
 AUTO_START = 256
 SEED = 0  # probe seed of the scenes' KPM (the same probes for every state and member)
 

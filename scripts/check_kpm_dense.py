@@ -55,6 +55,39 @@ def check(path, kind, moments, probes, max_moments, k_fraction, bins=40):
             "omega_star_partial": partial, "omega_top_partial": float(pos[k - 1])}
 
 
+def calibrate(path, kind, probes, grid=(256, 512, 1024, 2048, 4096, 8192)):
+    """KPM omega* at fixed moments against dense: the ratio omega*_KPM / Delta omega and the
+    relative error, the data behind parjam.kpm_dos.RESOLVED."""
+    comm = env.petsc().COMM_SELF
+    system = spectrum.active_system(io.read_packing(path))
+    w = dense_frequencies(system, kind)
+    _, wstar, _ = observables.dos_summary(w[w > 0], system.n_modes)
+    out = []
+    for m in grid:
+        res = kpm_dos.compute(comm, system, kind, m, probes, m)
+        _, _, raw, _ = kpm_dos.summary(res)
+        dw = kpm_dos.resolution(res.b, m)
+        out.append({"file": os.path.basename(path), "matrix": kind, "moments": m,
+                    "ratio": raw / dw, "rel_error": raw / wstar - 1.0,
+                    "omega_star_dense": wstar})
+        print(json.dumps(out[-1]), flush=True)
+    return out
+
+
+def calibration_table(rows):
+    ms = sorted({r["moments"] for r in rows})
+    out = ["| state | matrix | omega* dense | " + " | ".join(f"M = {m}" for m in ms) + " |",
+           "|---|---|---|" + "---|" * len(ms)]
+    keys = list(dict.fromkeys((r["file"], r["matrix"]) for r in rows))
+    for f, kind in keys:
+        sel = {r["moments"]: r for r in rows if r["file"] == f and r["matrix"] == kind}
+        first = next(iter(sel.values()))
+        cells = [f"{100 * sel[m]['rel_error']:+.0f} % ({sel[m]['ratio']:.1f})" for m in ms]
+        out.append(f"| {f.replace('.h5', '')} | {kind} | {first['omega_star_dense']:.4f} | "
+                   + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def fmt(x, spec=".4f"):
     return "NaN" if not np.isfinite(x) else format(x, spec)
 
@@ -80,6 +113,9 @@ def main(argv=None):
     p.add_argument("--max-moments", type=int, default=4096)
     p.add_argument("--k-fraction", type=float, default=0.033)
     p.add_argument("--matrices", default="full,relaxed")
+    p.add_argument("--calibrate", action="store_true",
+                   help="KPM omega* error against omega*_KPM / Delta omega at 256 .. 8192 "
+                        "moments instead")
     p.add_argument("--json")
     p.add_argument("--md")
     a = p.parse_args(argv)
@@ -87,9 +123,12 @@ def main(argv=None):
     rows = []
     for path in a.packings:
         for kind in a.matrices.split(","):
+            if a.calibrate:
+                rows += calibrate(path, kind, a.probes)
+                continue
             rows.append(check(path, kind, moments, a.probes, a.max_moments, a.k_fraction))
             print(json.dumps(rows[-1]), flush=True)
-    text = table(rows)
+    text = calibration_table(rows) if a.calibrate else table(rows)
     print(text)
     if a.md:
         with open(a.md, "w") as fh:

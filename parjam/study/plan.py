@@ -20,7 +20,7 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 
-from parjam import solver_choice
+from parjam import kpm_dos, solver_choice
 from parjam.errors import ParjamError
 from parjam.study.scene import System
 
@@ -136,6 +136,33 @@ def choose_solver(req, system, solver):
         else "dense-eigh"
 
 
+# Time models of the partial spectra and of KPM, one core (docs/reproduction.md, section 11):
+# shift-and-invert of the k lowest modes ~ factorisation + k solves and orthogonalisations,
+# fitted to 4.5 s at 12273 dof, k = 50 (docs/speed-accuracy.md) and 140 s at 30720 dof, k = 1000
+# (N = 10240, docs/reproduction.md section 10); KPM = (probes x moments / 2 + 40 Lanczos)
+# products of ~1.3 ms at 24516 dof (docs/speed-accuracy.md) + evaluating the cumulative on a
+# 4 M grid while the moments double (parjam.kpm_dos)
+SINVERT_FACTOR = 1.4e-6
+SINVERT_PER_MODE = 4.3e-6
+KPM_MATVEC = 5.3e-8
+KPM_EVAL = 5e-8
+
+
+def kpm_moments_guess(opts, label):
+    """The moments KPM will use at a state: the given number, or for "auto" the resolution
+    rule of parjam.kpm_dos with omega* ~ 1.6 dphi^(1/2) (3D harmonic spheres, measured at
+    N = 1024 and 10240) and Delta omega ~ 6 / M; the cap for target pressures."""
+    if opts["moments"] != "auto":
+        return opts["moments"]
+    if not label.startswith("dphi"):
+        return opts["max_moments"]
+    wstar = 1.6 * float(label[4:]) ** 0.5
+    m = kpm_dos.AUTO_START
+    while m < opts["max_moments"] and wstar < kpm_dos.RESOLVED * 6.0 / m:
+        m *= 2
+    return min(m, opts["max_moments"])
+
+
 def estimate(stage, scene):
     """Rough memory (MB, per rank) and time (s, one core, all members) of a stage."""
     s, members = stage.system, scene.members
@@ -158,10 +185,15 @@ def estimate(stage, scene):
                 mem = max(mem, 6 * 8 * dof * dof / 1e6)
                 # measured: eigvalsh of 3000 x 3000 in 3.2 s on one core, eigh 7.7 s
                 sec += 0.12 * (dof / 1000.0) ** 3 * (1.0 if sol == "dense-eigvalsh" else 4.0)
-            else:
+            elif sol != "kpm":
                 k = max(stage.params[st]["k"], 50)
                 mem = max(mem, 8 * dof * (k * 2 + 300) / 1e6)
-                sec += 1e-4 * dof ** 1.3 + 1e-3 * k * dof / 100
+                sec += SINVERT_FACTOR * dof ** 1.5 + SINVERT_PER_MODE * k * dof
+            if stage.params[st].get("kpm"):
+                o = stage.params[st]["kpm"]
+                m = kpm_moments_guess(o, st)
+                mem = max(mem, 8 * dof * (3 * o["probes"] + 4) / 1e6 + 8 * 40 * dof * 2 / 1e6)
+                sec += KPM_MATVEC * dof * (o["probes"] * m / 2 + 40) + KPM_EVAL * m * m
         return 50 + mem, members * sec
     if stage.kind == "moduli":
         return 50 + 8 * dof * 300 / 1e6, members * nstates * (1e-3 * dof ** 1.2)
