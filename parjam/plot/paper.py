@@ -7,7 +7,7 @@ A results directory holds one subdirectory per bundled scene (``SCENES``: ``pape
 its laws (parjam.fits) into a ``fits`` dict and is drawn to ``repro_<name>.png``.
 ``parjam plot RESULTS --img DIR`` and ``scripts/reproduce.py`` call :func:`reproduce`.
 
-Why one file of ~530 lines: every figure is a small function next to the laws it fits, and the
+Why one file of ~640 lines: every figure is a small function next to the laws it fits, and the
 ``FIGURES`` table that drives them reads best in one place.
 """
 
@@ -141,9 +141,13 @@ def fig1_states(s):
     return labs
 
 
-def _source(dos):
-    return (f"KPM, {int(np.max(dos['kpm_moments']))} moments" if "kpm_moments" in dos
-            else "dense")
+def _source(doses):
+    """'dense', or 'KPM, M1 - M2 moments' over the D(omega)s drawn."""
+    m = [int(x) for d in doses if "kpm_moments" in d for x in d["kpm_moments"]]
+    if not m:
+        return "dense"
+    return f"KPM, {min(m)} moments" if min(m) == max(m) else \
+        f"KPM, {min(m)} - {max(m)} moments"
 
 
 def fig1(plt, systems, fits):
@@ -151,18 +155,17 @@ def fig1(plt, systems, fits):
     where 1e-8 is missing), ensemble mean with its error band."""
     fig, axes = _panels(plt, systems)
     for ax, (name, s) in zip(axes, systems.items()):
-        src = ""
-        for k, lab in enumerate(fig1_states(s)):
+        labs = fig1_states(s)
+        src = _source([s[lab]["spectrum"]["full"]["dos"] for lab in labs])
+        for k, lab in enumerate(labs):
             dos = s[lab]["spectrum"]["full"]["dos"]
-            src = _source(dos)
             ax.plot(dos["omega"], dos["density"], "-", lw=1.2, color=f"C{k}",
                     label=rf"$\delta\phi$ = {value(lab):.0e}")
             if "density_error" in dos:
                 ax.fill_between(dos["omega"], dos["density"] - dos["density_error"],
                                 dos["density"] + dos["density_error"], color=f"C{k}",
                                 alpha=0.25, lw=0)
-        ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$",
-               title=f"{name}, full matrix ({src})")
+        ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}, full matrix\n{src}")
         ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
@@ -189,7 +192,14 @@ def _compare_ok(s, lab):
 
 
 def _compare_kpm(ax, s, lab, k):
-    """Full and relaxed D(omega) of one state from the KPM moments, with error bands."""
+    """Full and relaxed D(omega) of one state from the KPM moments, with error bands; the
+    frequencies up to 2 omega* of the relaxed system at the largest dphi drawn, densities down
+    to 1e-3 (below, the kernel's tail)."""
+    top = 2.0 * np.nanmean(s[COMPARE_STATES[0]]["spectrum"]["relaxed"]["omega_star"]) \
+        if _kpm_dos(s, COMPARE_STATES[0], "relaxed") is not None else None
+    if top and np.isfinite(top):
+        ax.set_xlim(0, top)
+    ax.set_ylim(1e-3, 1.0)
     for matrix, ls in (("full", "-"), ("relaxed", "--")):
         dos = _kpm_dos(s, lab, matrix)
         w, d, e = dos["omega"], dos["density"], dos["density_error"]
@@ -339,8 +349,9 @@ def trans(plt, systems, fits):
         if not complete:
             ax.axvspan(*rng, color="0.9", zorder=0)
         ax.set(xlabel=r"$\omega$", ylabel="sum per mode",
-               title=rf"{name}, $\delta\phi={value(lab):.0e}$"
-               + ("" if complete else f", lowest {len(w) // len(np.unique(member))} modes"))
+               title=rf"{name}, $\delta\phi$ = {value(lab):.0e}"
+               + ("" if complete else f"\nlowest {len(w) // len(np.unique(member))} modes "
+                                      f"per member"))
         ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
