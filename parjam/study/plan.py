@@ -140,25 +140,27 @@ def choose_solver(req, system, solver):
 # shift-and-invert of the k lowest modes ~ factorisation + k solves and orthogonalisations,
 # fitted to 4.5 s at 12273 dof, k = 50 (docs/speed-accuracy.md) and 140 s at 30720 dof, k = 1000
 # (N = 10240, docs/reproduction.md section 10); KPM = (probes x moments / 2 + 40 Lanczos)
-# products of ~1.3 ms at 24516 dof (docs/speed-accuracy.md) + evaluating the cumulative on a
-# 4 M grid while the moments double (parjam.kpm_dos)
+# products of 0.45 - 0.8 ms at 30720 dof (N = 10240, 4096 moments x 4 probes in 4 - 7 s) +
+# evaluating the cumulative on a 4 M grid while the moments double (parjam.kpm_dos).  Checked
+# at N = 10240 (section 11): 167 s of CPU per member measured against 205 s estimated.
 SINVERT_FACTOR = 1.4e-6
 SINVERT_PER_MODE = 4.3e-6
-KPM_MATVEC = 5.3e-8
+KPM_MATVEC = 2.5e-8
 KPM_EVAL = 5e-8
+KPM_DELTA_OMEGA = 4.0  # (pi/2) sqrt(lambda_max) of 3D harmonic spheres, dphi <= 1e-2 (measured)
 
 
 def kpm_moments_guess(opts, label):
     """The moments KPM will use at a state: the given number, or for "auto" the resolution
     rule of parjam.kpm_dos with omega* ~ 1.6 dphi^(1/2) (3D harmonic spheres, measured at
-    N = 1024 and 10240) and Delta omega ~ 6 / M; the cap for target pressures."""
+    N = 1024 and 10240) and Delta omega ~ KPM_DELTA_OMEGA / M; the cap for target pressures."""
     if opts["moments"] != "auto":
         return opts["moments"]
     if not label.startswith("dphi"):
         return opts["max_moments"]
     wstar = 1.6 * float(label[4:]) ** 0.5
     m = kpm_dos.AUTO_START
-    while m < opts["max_moments"] and wstar < kpm_dos.RESOLVED * 6.0 / m:
+    while m < opts["max_moments"] and wstar < kpm_dos.RESOLVED * KPM_DELTA_OMEGA / m:
         m *= 2
     return min(m, opts["max_moments"])
 
@@ -187,7 +189,10 @@ def estimate(stage, scene):
                 sec += 0.12 * (dof / 1000.0) ** 3 * (1.0 if sol == "dense-eigvalsh" else 4.0)
             elif sol != "kpm":
                 k = max(stage.params[st]["k"], 50)
-                mem = max(mem, 8 * dof * (k * 2 + 300) / 1e6)
+                # Lanczos basis and vectors, plus the MUMPS factor: 6.3e6 entries at 12273 dof
+                # (docs/speed-accuracy.md), growing as dof^(4/3) in 3D, ~12 bytes an entry;
+                # measured at N = 10240, k = 400: peak RSS 737 MB per rank, estimate 560 MB
+                mem = max(mem, 8 * dof * (k * 2 + 300) / 1e6 + 260 * dof ** (4 / 3) / 1e6)
                 sec += SINVERT_FACTOR * dof ** 1.5 + SINVERT_PER_MODE * k * dof
             if stage.params[st].get("kpm"):
                 o = stage.params[st]["kpm"]
