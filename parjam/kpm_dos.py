@@ -6,13 +6,16 @@ evaluates D(omega) from them and the plots read results only.
 Resolution (docs/speed-accuracy.md, "D(omega): dense LAPACK, spectrum slicing, KPM"): the
 Jackson kernel smears D(omega) over
 
-    Delta omega = (pi / 2) sqrt(lambda_max) / M          (about 6 / M for 3D harmonic spheres)
+    Delta omega = (pi / 2) sqrt(lambda_max) / M    (about 4 / M for 3D harmonic spheres, measured)
 
 uniformly in omega, and KPM's omega* (the onset estimator of parjam.observables) is biased high
-until omega* >> Delta omega: within 2 - 10 % at omega* / Delta omega ~ 8 (N = 1024,
-dphi = 1e-2, 128 - 256 moments), 40 % at ~ 3 and 100 % at ~ 2 (dphi = 1e-4, 1024 and 512
-moments).  So omega* counts as **resolved** when omega*_KPM >= RESOLVED x Delta omega, else it
-is recorded as NaN (the D(omega) curve and D0, which converge much earlier, are kept).
+until omega* >> Delta omega.  Measured against dense LAPACK at N = 1024
+(scripts/check_kpm_dense.py --calibrate, docs/reproduction.md section 11): +13 % at
+omega*_KPM / Delta omega = 6.5 and -1 .. +3 % from 20 on at dphi = 1e-3; -2 .. -6 % at any
+ratio >= 10 at dphi >= 1e-2; but +17 % at 16 and +13 % at 30 at dphi = 1e-4, where the full
+matrix's onset is soft.  So omega* counts as **resolved** when omega*_KPM >= RESOLVED x
+Delta omega, else it is recorded as NaN (the D(omega) curve and D0, which converge much earlier,
+are kept); below dphi ~ 1e-3 the lowest modes with the KPM D0 are the better estimator.
 ``moments = "auto"``: start at AUTO_START moments and double (the recurrence resumed, so the
 cost is that of the final M only) until omega* is resolved or ``max_moments`` is reached.
 """
