@@ -164,32 +164,50 @@ def jackson(m):
     return ((m - n + 1) * np.cos(q * n) + np.sin(q * n) / np.tan(q)) / (m + 1)
 
 
+class Recurrence:
+    """The Chebyshev recurrence of one probe r, resumable: ``advance(M)`` returns
+    r^T T_n(A~) r for n < M (raw sums, moment doubling: M / 2 products in all), continuing
+    from where the previous call stopped, so doubling the moments costs only the new ones."""
+
+    def __init__(self, A, r, c, h):
+        self.A, self.c, self.h = A, c, h
+        self.t_prev = r.copy()
+        self.t = r.duplicate()
+        self.w = r.duplicate()
+        A.mult(self.t_prev, self.t)  # t_1 = A~ r
+        self.t.axpy(-c, self.t_prev)
+        self.t.scale(1.0 / h)
+        self.mu0 = self.t_prev.dot(self.t_prev)
+        self.mu1 = self.t.dot(self.t_prev)
+        self.mu = [self.mu0, self.mu1, 2.0 * self.t.dot(self.t) - self.mu0]  # 2 <t1,t1> - mu0
+        self.n = 1
+
+    def advance(self, moments):
+        half = (moments + 1) // 2
+        while self.n < half:
+            self.A.mult(self.t, self.w)  # t_{n+1} = 2 A~ t_n - t_{n-1}
+            self.w.axpy(-self.c, self.t)
+            self.w.scale(2.0 / self.h)
+            self.w.axpy(-1.0, self.t_prev)
+            self.mu.append(2.0 * self.w.dot(self.t) - self.mu1)
+            self.mu.append(2.0 * self.w.dot(self.w) - self.mu0)
+            self.t_prev, self.t, self.w = self.t, self.w, self.t_prev
+            self.n += 1
+        return np.array(self.mu[:moments])
+
+    def destroy(self):
+        for obj in (self.t_prev, self.t, self.w):
+            obj.destroy()
+
+
 def probe_moments(A, r, c, h, moments):
     """r^T T_n(A~) r for n < moments (moment doubling: moments / 2 products), A~ = (A - c) / h.
     Returns the raw sums (not normalised by |r|^2)."""
-    half = (moments + 1) // 2
-    mu = np.zeros(2 * half + 1)
-    t_prev = r.copy()
-    t = r.duplicate()
-    w = r.duplicate()
-    A.mult(t_prev, t)  # t_1 = A~ r
-    t.axpy(-c, t_prev)
-    t.scale(1.0 / h)
-    mu0 = t_prev.dot(t_prev)
-    mu1 = t.dot(t_prev)
-    mu[0], mu[1] = mu0, mu1
-    mu[2] = 2.0 * t.dot(t) - mu0  # 2 <t1,t1> - mu0
-    for n in range(1, half):
-        A.mult(t, w)  # t_{n+1} = 2 A~ t_n - t_{n-1}
-        w.axpy(-c, t)
-        w.scale(2.0 / h)
-        w.axpy(-1.0, t_prev)
-        mu[2 * n + 1] = 2.0 * w.dot(t) - mu1
-        mu[2 * n + 2] = 2.0 * w.dot(w) - mu0
-        t_prev, t, w = t, w, t_prev
-    for obj in (t_prev, t, w):
-        obj.destroy()
-    return mu[:moments]
+    rec = Recurrence(A, r, c, h)
+    try:
+        return rec.advance(moments)
+    finally:
+        rec.destroy()
 
 
 @dataclass
@@ -270,23 +288,44 @@ class KPMResult:
         return float(self.cumulative(0.0))
 
 
+CHUNK_ENTRIES = 1 << 22  # points x moments evaluated at once (32 MB of doubles)
+
+
+def chunked(f, x, m):
+    """f over the flattened points x in chunks of CHUNK_ENTRIES / m, reshaped like x (the
+    (points x moments) table of thousands of moments would not fit otherwise)."""
+    x = np.asarray(x, dtype=float)
+    flat = x.ravel()
+    step = max(1, CHUNK_ENTRIES // max(m, 1))
+    out = np.concatenate([f(flat[i:i + step]) for i in range(0, len(flat), step)]) \
+        if len(flat) else np.empty(0)
+    return out.reshape(x.shape)
+
+
 def cumulative(mu, x):
     """Jackson-damped Chebyshev cumulative F(x) on [-1, 1] (RMP Eq. 70 integrated)."""
     g = jackson(len(mu)) * mu
-    theta = np.arccos(np.clip(np.asarray(x, dtype=float), -1.0, 1.0))
     n = np.arange(1, len(mu))
-    s = g[0] * theta + 2.0 * np.sum(g[1:] * np.sin(np.multiply.outer(theta, n)) / n, axis=-1)
-    return 1.0 - s / np.pi
+
+    def one(xs):
+        theta = np.arccos(np.clip(xs, -1.0, 1.0))
+        s = g[0] * theta + 2.0 * np.sum(g[1:] * np.sin(np.multiply.outer(theta, n)) / n,
+                                        axis=-1)
+        return 1.0 - s / np.pi
+    return chunked(one, x, len(mu))
 
 
 def density_x(mu, x):
     """Jackson-damped Chebyshev density rho(x) on (-1, 1) (RMP Eq. 70)."""
     g = jackson(len(mu)) * mu
-    x = np.clip(np.asarray(x, dtype=float), -1.0 + 1e-15, 1.0 - 1e-15)
-    theta = np.arccos(x)
     n = np.arange(1, len(mu))
-    s = g[0] + 2.0 * np.sum(g[1:] * np.cos(np.multiply.outer(theta, n)), axis=-1)
-    return s / (np.pi * np.sqrt(1.0 - x * x))
+
+    def one(xs):
+        xs = np.clip(xs, -1.0 + 1e-15, 1.0 - 1e-15)
+        theta = np.arccos(xs)
+        s = g[0] + 2.0 * np.sum(g[1:] * np.cos(np.multiply.outer(theta, n)), axis=-1)
+        return s / (np.pi * np.sqrt(1.0 - xs * xs))
+    return chunked(one, x, len(mu))
 
 
 def moments(A, d, n_modes, kind="full", n_moments=256, n_probes=16, *, seed=0,

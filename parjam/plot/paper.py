@@ -7,7 +7,7 @@ A results directory holds one subdirectory per bundled scene (``SCENES``: ``pape
 its laws (parjam.fits) into a ``fits`` dict and is drawn to ``repro_<name>.png``.
 ``parjam plot RESULTS --img DIR`` and ``scripts/reproduce.py`` call :func:`reproduce`.
 
-Why one file of ~530 lines: every figure is a small function next to the laws it fits, and the
+Why one file of ~640 lines: every figure is a small function next to the laws it fits, and the
 ``FIGURES`` table that drives them reads best in one place.
 """
 
@@ -22,11 +22,12 @@ import numpy as np
 from parjam import outputs
 from parjam.errors import ParjamError
 from parjam.plot import DPI, LEGEND_FONTSIZE, atomic_png, pyplot
-from parjam.fits import fit_eq33, fit_power, law, log_slope
+from parjam.fits import bootstrap, fit_eq33, fit_power, law, log_slope
 from parjam.study.summary import read_summary
 
 #: figure group -> the bundled scenes (subdirectories of a results directory) that feed it
-SCENES = {"paper": ("paper-3d", "paper-2d", "paper-3d-10x"), "hertz": ("hertz-3d",),
+SCENES = {"paper": ("paper-3d", "paper-2d", "paper-3d-10x", "paper-3d-10x-spectra"),
+          "hertz": ("hertz-3d",),
           "softmodes": ("softmodes-3d",)}
 
 
@@ -73,7 +74,9 @@ def read_results(results, summaries=()):
     if results is not None:
         for g, scenes in SCENES.items():
             for scene in scenes:
-                groups[g].update(load(results, scene))
+                for name, summ in load(results, scene).items():
+                    # two scenes of the same system (paper-3d-10x and its spectra) both drawn
+                    groups[g][f"{name} [{scene}]" if name in groups[g] else name] = summ
         direct.update(load(results, ""))
     for path in summaries:
         s = read(path)
@@ -128,16 +131,41 @@ def _panels(plt, systems):
     return fig, axes[0]
 
 
+def fig1_states(s):
+    """FIG1_STATES, and the state closest to jamming of a ladder without dphi = 1e-8 (N = 10240:
+    dphi = 1e-6)."""
+    labs = [lab for lab in FIG1_STATES if _get(s, lab, "spectrum", "full", "dos") is not None]
+    low = [lab for lab in states(s) if _get(s, lab, "spectrum", "full", "dos") is not None]
+    if low and "dphi1.0e-08" not in labs and low[0] not in labs:
+        labs.append(low[0])
+    return labs
+
+
+def _source(doses):
+    """'dense', or 'KPM, M1 - M2 moments' over the D(omega)s drawn."""
+    m = [int(x) for d in doses if "kpm_moments" in d for x in d["kpm_moments"]]
+    if not m:
+        return "dense"
+    return f"KPM, {min(m)} moments" if min(m) == max(m) else \
+        f"KPM, {min(m)} - {max(m)} moments"
+
+
 def fig1(plt, systems, fits):
-    """Fig. 1: D(omega) of the full matrix for dphi = 1e-1 .. 1e-8."""
+    """Fig. 1: D(omega) of the full matrix for dphi = 1e-1 .. 1e-8 (the ladder's lowest state
+    where 1e-8 is missing), ensemble mean with its error band."""
     fig, axes = _panels(plt, systems)
     for ax, (name, s) in zip(axes, systems.items()):
-        for lab in FIG1_STATES:
-            dos = _get(s, lab, "spectrum", "full", "dos")
-            if dos is not None:
-                ax.plot(dos["omega"], dos["density"], "-", lw=1.2,
-                        label=rf"$\delta\phi$ = {value(lab):.0e}")
-        ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}, full matrix")
+        labs = fig1_states(s)
+        src = _source([s[lab]["spectrum"]["full"]["dos"] for lab in labs])
+        for k, lab in enumerate(labs):
+            dos = s[lab]["spectrum"]["full"]["dos"]
+            ax.plot(dos["omega"], dos["density"], "-", lw=1.2, color=f"C{k}",
+                    label=rf"$\delta\phi$ = {value(lab):.0e}")
+            if "density_error" in dos:
+                ax.fill_between(dos["omega"], dos["density"] - dos["density_error"],
+                                dos["density"] + dos["density_error"], color=f"C{k}",
+                                alpha=0.25, lw=0)
+        ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}, full matrix\n{src}")
         ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
@@ -150,10 +178,36 @@ def pooled_dos(s, lab, matrix, edges):
     return counts / (n_modes * np.diff(edges))
 
 
+def _kpm_dos(s, lab, matrix):
+    dos = _get(s, lab, "spectrum", matrix, "dos")
+    return dos if dos is not None and "kpm_moments" in dos else None
+
+
 def _compare_ok(s, lab):
+    if all(_kpm_dos(s, lab, m) is not None for m in ("full", "relaxed")):
+        return True
     return all(_get(s, lab, *p) is not None for p in (
         ("spectrum", "full", "frequency"), ("spectrum", "relaxed", "frequency"),
         ("network", "N_active")))
+
+
+def _compare_kpm(ax, s, lab, k):
+    """Full and relaxed D(omega) of one state from the KPM moments, with error bands; the
+    frequencies up to 2 omega* of the relaxed system at the largest dphi drawn, densities down
+    to 1e-3 (below, the kernel's tail)."""
+    top = 2.0 * np.nanmean(s[COMPARE_STATES[0]]["spectrum"]["relaxed"]["omega_star"]) \
+        if _kpm_dos(s, COMPARE_STATES[0], "relaxed") is not None else None
+    if top and np.isfinite(top):
+        ax.set_xlim(0, top)
+    ax.set_ylim(1e-3, 1.0)
+    for matrix, ls in (("full", "-"), ("relaxed", "--")):
+        dos = _kpm_dos(s, lab, matrix)
+        w, d, e = dos["omega"], dos["density"], dos["density_error"]
+        ok = d > 0
+        ax.semilogy(w[ok], d[ok], ls, color=f"C{k}", lw=1.1,
+                    label=f"{matrix} {value(lab):.0e}")
+        ax.fill_between(w[ok], np.clip(d - e, d / 10, None)[ok], (d + e)[ok], color=f"C{k}",
+                        alpha=0.2, lw=0)
 
 
 def compare(plt, systems, fits):
@@ -162,6 +216,9 @@ def compare(plt, systems, fits):
     for ax, (name, s) in zip(axes, systems.items()):
         for k, lab in enumerate(COMPARE_STATES):
             if not _compare_ok(s, lab):
+                continue
+            if all(_kpm_dos(s, lab, m) is not None for m in ("full", "relaxed")):
+                _compare_kpm(ax, s, lab, k)
                 continue
             top = np.percentile(s[lab]["spectrum"]["full"]["frequency"], 99)
             edges = np.linspace(0, top, 50)
@@ -188,9 +245,20 @@ def _sans_states(s):
     has SANS_MIN_EXCESS excess contacts: with fewer, omega* is set by the lowest modes of the
     finite box, not by dz.  At N = 1024 this is dphi >= 1e-4 (2D and 3D); at N = 10240 it adds
     dphi = 1e-5 (117 contacts)."""
-    return [lab for lab in states(s)
-            if _get(s, lab, "spectrum", "relaxed", "omega_star") is not None
+    return [lab for lab in states(s) if _finite(s, lab, "relaxed")
             and (value(lab) >= 1e-4 or _excess(s, lab) >= SANS_MIN_EXCESS)]
+
+
+def _finite(s, lab, matrix):
+    """omega* of the matrix at the state, finite for at least one member (a KPM omega* the
+    kernel does not resolve, or lowest modes that do not reach 2 omega*, are NaN)."""
+    x = _get(s, lab, "spectrum", matrix, "omega_star")
+    return x is not None and np.any(np.isfinite(np.asarray(x, dtype=float)))
+
+
+def _eq33_states(s):
+    """The states of Fig. "sans" with omega_AM (omega* of the full matrix) too."""
+    return [lab for lab in _sans_states(s) if _finite(s, lab, "full")]
 
 
 def sans(plt, systems, fits):
@@ -212,36 +280,87 @@ def sans(plt, systems, fits):
     return fig
 
 
+def trans_state(s):
+    """dphi = 1e-8 (the paper's), else the ladder's lowest state with per-mode sums of the full
+    matrix (N = 10240: dphi = 1e-6, from the lowest k modes)."""
+    labs = [lab for lab in ["dphi1.0e-08"] + states(s)
+            if "eps_perp" in (_get(s, lab, "spectrum", "full") or {})]
+    return labs[0] if labs else None
+
+
+def _complete(s, lab):
+    """Every non-translational mode of every member computed (a dense spectrum)?"""
+    g = s[lab]["spectrum"]["full"]
+    total = np.nansum(s["attrs"]["d"] * s[lab]["network"]["N_active"] - s["attrs"]["d"])
+    return len(g["frequency"]) >= 0.99 * total
+
+
+def trans_fit(w, perp, par, member, complete):
+    """Slopes of eps_par and eps_perp against omega in log-log: over the lowest 20 % of the
+    modes of a complete spectrum (the N = 1024 path), over every computed mode of a partial
+    one (the lowest k: the range they cover); bootstrap errors over members."""
+    def one(rows):
+        sel = np.isin(member, rows)
+        ww, pp, qq = w[sel], perp[sel], par[sel]
+        low = ww < np.quantile(ww, 0.2) if complete else np.ones(len(ww), bool)
+        return np.array([log_slope(ww[low], qq[low])[0], log_slope(ww[low], pp[low])[0]])
+
+    ids = np.unique(member)
+    best, boots = bootstrap(lambda r: one(ids[r]), len(ids))
+    low = w < np.quantile(w, 0.2) if complete else np.ones(len(w), bool)
+    return best, np.nanstd(boots, axis=0), low
+
+
 def trans(plt, systems, fits):
-    """Fig. "trans": transverse and longitudinal sums per mode at dphi = 1e-8, slopes over the
-    lowest 20 % of the modes."""
+    """Fig. "trans": transverse and longitudinal sums per mode at dphi = 1e-8 (trans_state),
+    slopes by trans_fit."""
     fig, axes = _panels(plt, systems)
     for ax, (name, s) in zip(axes, systems.items()):
-        g = _get(s, "dphi1.0e-08", "spectrum", "full") or {}
-        if "eps_perp" not in g:
+        lab = trans_state(s)
+        if lab is None:
             continue
-        w, perp, par = g["frequency"], g["eps_perp"], g["eps_par"]
+        g = s[lab]["spectrum"]["full"]
+        w, perp, par, member = g["frequency"], g["eps_perp"], g["eps_par"], g["member_of_mode"]
         ok = w > 0
-        w, perp, par = w[ok], perp[ok], par[ok]
+        w, perp, par, member = w[ok], perp[ok], par[ok], member[ok]
+        complete = _complete(s, lab)
         ax.loglog(w, perp, ".", ms=1.5, color="C0", label=r"$\epsilon_\perp$ (transverse)")
         ax.loglog(w, par, ".", ms=1.5, color="C3", label=r"$\epsilon_\parallel$ (longitudinal)")
-        low = w < np.quantile(w, 0.2)
-        b, a = log_slope(w[low], par[low])
-        bp, _ = log_slope(w[low], perp[low])
-        fits[f"trans/{name}"] = {"par_exponent_low20pct": float(b),
-                                 "perp_exponent_low20pct": float(bp),
-                                 "perp_at_lowest_5pct":
-                                     float(np.mean(perp[w < np.quantile(w, 0.05)])),
-                                 "omega_range": [float(w[low].min()), float(w[low].max())]}
+        (b, bp), (b_err, bp_err), low = trans_fit(w, perp, par, member, complete)
+        a = log_slope(w[low], par[low])[1]
+        rng = [float(w[low].min()), float(w[low].max())]
+        if complete:  # the keys of the N = 1024 path
+            fits[f"trans/{name}"] = {"par_exponent_low20pct": float(b),
+                                     "perp_exponent_low20pct": float(bp),
+                                     "perp_at_lowest_5pct":
+                                         float(np.mean(perp[w < np.quantile(w, 0.05)])),
+                                     "omega_range": rng}
+        else:
+            fits[f"trans/{name}"] = {"state": lab, "modes": int(len(w)),
+                                     "fit_range": "every computed mode (the lowest k)",
+                                     "omega_range": rng, "par_exponent": float(b),
+                                     "perp_exponent": float(bp),
+                                     "perp_mean": float(np.mean(perp)),
+                                     "perp_std": float(np.std(perp))}
+        fits[f"trans/{name}"].update(par_exponent_err=float(b_err),
+                                     perp_exponent_err=float(bp_err))
         x = np.geomspace(w.min(), w.max(), 20)
         ax.loglog(x, np.exp(a) * x**2, "k--", lw=0.8, label=r"$\propto\omega^2$")
-        ax.set(xlabel=r"$\omega$", ylabel="sum per mode", title=rf"{name}, $\delta\phi=10^{{-8}}$")
+        if not complete:
+            ax.axvspan(*rng, color="0.9", zorder=0)
+        ax.set(xlabel=r"$\omega$", ylabel="sum per mode",
+               title=rf"{name}, $\delta\phi$ = {value(lab):.0e}"
+               + ("" if complete else f"\nlowest {len(w) // len(np.unique(member))} modes "
+                                      f"per member"))
         ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
 
 def _trans_ok(s):
-    g = _get(s, "dphi1.0e-08", "spectrum", "full") or {}
+    lab = trans_state(s)
+    if lab is None:
+        return False
+    g = s[lab]["spectrum"]["full"]
     return all(k in g for k in ("frequency", "eps_perp", "eps_par")) and np.sum(
         np.asarray(g["frequency"]) > 0) >= 10
 
@@ -249,7 +368,7 @@ def _trans_ok(s):
 def eq33_fit(name, s, fits):
     """Eq. (33) fit of one system over dphi >= 1e-4 into ``fits`` (eq33/ and
     eq33_relaxed_ratio/); returns the fit and the tables it used."""
-    labs = _sans_states(s)
+    labs = _eq33_states(s)
     w2 = table(s, labs, "spectrum", "omega_star", "full") ** 2
     ws2 = table(s, labs, "spectrum", "omega_star", "relaxed") ** 2
     dz = table(s, labs, "network", "dz_iso")
@@ -263,7 +382,7 @@ def eq33_fit(name, s, fits):
 
 
 def _eq33_ok(s):
-    return _has(s, _sans_states(s), ("spectrum", "full", "omega_star"),
+    return _has(s, _eq33_states(s), ("spectrum", "full", "omega_star"),
                 ("spectrum", "relaxed", "omega_star"), ("network", "dz_iso"),
                 ("network", "pressure"))
 

@@ -20,7 +20,7 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 
-from parjam import solver_choice
+from parjam import kpm_dos, solver_choice
 from parjam.errors import ParjamError
 from parjam.study.scene import System
 
@@ -73,6 +73,8 @@ def spectrum_needs(scene, system):
             state, {"all": False, "k": 0, "window": None, "per_mode": False, "vectors": False})
         if kw.get("kpm_plateau"):
             d["kpm_plateau"] = True  # only when asked: the other stage keys stay as they were
+        if kw.get("kpm"):
+            d["kpm"] = kw["kpm"]  # D(omega) by KPM (parjam.kpm_dos), likewise only when asked
         d["all"] |= kw.get("all", False)
         d["k"] = max(d["k"], kw.get("k") or 0)
         d["per_mode"] |= kw.get("per_mode", False)
@@ -85,9 +87,14 @@ def spectrum_needs(scene, system):
     obs = scene.observables
     if "dos" in obs:
         o = obs["dos"]
+        kpm = ({q: o[q] for q in ("moments", "probes", "max_moments")}
+               if o.get("method") == "kpm" else None)
         for m in o["matrices"]:
             for s in o["at"]:
-                want(m, s, all=o["window"] is None, window=o["window"])
+                if kpm:
+                    want(m, s, kpm=kpm)
+                else:
+                    want(m, s, all=o["window"] is None, window=o["window"])
     if "omega_star" in obs:
         o = obs["omega_star"]
         for m in o["matrices"]:
@@ -111,6 +118,8 @@ def choose_solver(req, system, solver):
     scene's [solver] limits; a dense solve is "dense-eigvalsh" (eigenvalues only) unless
     per-mode sums or vectors are wanted."""
     dof = system.max_dof
+    if req.get("kpm") and not (req["all"] or req["k"] or req["window"] is not None):
+        return "kpm"  # D(omega), D0 and omega* from KPM moments alone (parjam.kpm_dos)
     limits = solver_choice.Limits(whole_max_dof=solver["dense_max_dof"],
                                   partial_dense_max_dof=solver["small_dof"])
     try:
@@ -125,6 +134,35 @@ def choose_solver(req, system, solver):
         return sol
     return "dense-eigvalsh" if req["all"] and not (req["per_mode"] or req["vectors"]) \
         else "dense-eigh"
+
+
+# Time models of the partial spectra and of KPM, one core (docs/reproduction.md, section 11):
+# shift-and-invert of the k lowest modes ~ factorisation + k solves and orthogonalisations,
+# fitted to 4.5 s at 12273 dof, k = 50 (docs/speed-accuracy.md) and 140 s at 30720 dof, k = 1000
+# (N = 10240, docs/reproduction.md section 10); KPM = (probes x moments / 2 + 40 Lanczos)
+# products of 0.45 - 0.8 ms at 30720 dof (N = 10240, 4096 moments x 4 probes in 4 - 7 s) +
+# evaluating the cumulative on a 4 M grid while the moments double (parjam.kpm_dos).  Checked
+# at N = 10240 (section 11): 167 s of CPU per member measured against 205 s estimated.
+SINVERT_FACTOR = 1.4e-6
+SINVERT_PER_MODE = 4.3e-6
+KPM_MATVEC = 2.5e-8
+KPM_EVAL = 5e-8
+KPM_DELTA_OMEGA = 4.0  # (pi/2) sqrt(lambda_max) of 3D harmonic spheres, dphi <= 1e-2 (measured)
+
+
+def kpm_moments_guess(opts, label):
+    """The moments KPM will use at a state: the given number, or for "auto" the resolution
+    rule of parjam.kpm_dos with omega* ~ 1.6 dphi^(1/2) (3D harmonic spheres, measured at
+    N = 1024 and 10240) and Delta omega ~ KPM_DELTA_OMEGA / M; the cap for target pressures."""
+    if opts["moments"] != "auto":
+        return opts["moments"]
+    if not label.startswith("dphi"):
+        return opts["max_moments"]
+    wstar = 1.6 * float(label[4:]) ** 0.5
+    m = kpm_dos.AUTO_START
+    while m < opts["max_moments"] and wstar < kpm_dos.RESOLVED * KPM_DELTA_OMEGA / m:
+        m *= 2
+    return min(m, opts["max_moments"])
 
 
 def estimate(stage, scene):
@@ -149,10 +187,18 @@ def estimate(stage, scene):
                 mem = max(mem, 6 * 8 * dof * dof / 1e6)
                 # measured: eigvalsh of 3000 x 3000 in 3.2 s on one core, eigh 7.7 s
                 sec += 0.12 * (dof / 1000.0) ** 3 * (1.0 if sol == "dense-eigvalsh" else 4.0)
-            else:
+            elif sol != "kpm":
                 k = max(stage.params[st]["k"], 50)
-                mem = max(mem, 8 * dof * (k * 2 + 300) / 1e6)
-                sec += 1e-4 * dof ** 1.3 + 1e-3 * k * dof / 100
+                # Lanczos basis and vectors, plus the MUMPS factor: 6.3e6 entries at 12273 dof
+                # (docs/speed-accuracy.md), growing as dof^(4/3) in 3D, ~12 bytes an entry;
+                # measured at N = 10240, k = 400: peak RSS 737 MB per rank, estimate 560 MB
+                mem = max(mem, 8 * dof * (k * 2 + 300) / 1e6 + 260 * dof ** (4 / 3) / 1e6)
+                sec += SINVERT_FACTOR * dof ** 1.5 + SINVERT_PER_MODE * k * dof
+            if stage.params[st].get("kpm"):
+                o = stage.params[st]["kpm"]
+                m = kpm_moments_guess(o, st)
+                mem = max(mem, 8 * dof * (3 * o["probes"] + 4) / 1e6 + 8 * 40 * dof * 2 / 1e6)
+                sec += KPM_MATVEC * dof * (o["probes"] * m / 2 + 40) + KPM_EVAL * m * m
         return 50 + mem, members * sec
     if stage.kind == "moduli":
         return 50 + 8 * dof * 300 / 1e6, members * nstates * (1e-3 * dof ** 1.2)
@@ -227,6 +273,10 @@ def describe(scene, stages):
                 extra = ", per-mode sums" if p["per_mode"] else ""
                 extra += ", eigenvectors stored" if p["vectors"] else ""
                 extra += ", D0 from KPM" if p.get("kpm_plateau") and not p["all"] else ""
+                if p.get("kpm"):
+                    what += " + KPM" if p["all"] or p["window"] or p["k"] else ""
+                    what = "KPM" if p["solver"] == "kpm" else what
+                    extra += f", {p['kpm']['moments']} moments x {p['kpm']['probes']} probes"
                 lines.append(f"      {state:<12} {what}{extra}: {p['solver']}")
         else:
             lines.append(f"      states {', '.join(st.states)}; {st.solvers()}")

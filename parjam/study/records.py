@@ -6,7 +6,7 @@ there, in particle-id order."""
 
 import numpy as np
 
-from parjam import kpm, moduli, observables, rowio, spectrum
+from parjam import kpm, kpm_dos, moduli, observables, rowio, spectrum
 from parjam import softmodes as sm
 from parjam.errors import ParjamError
 
@@ -46,6 +46,16 @@ def spectrum_record(comm, rows, kind, req, tol):
     system = spectrum.distributed_system(rowio.network(comm, rows))
     sol = req["solver"]
     rec = {"solver": sol, "n_modes_total": system.n_modes, "n_active": system.n}
+    if req.get("kpm"):  # D(omega) by KPM (dos = { method = "kpm" }): the moments are stored
+        o = req["kpm"]
+        rec.update(kpm_dos.to_record(kpm_dos.compute(comm, system, kind, o["moments"],
+                                                     o["probes"], o["max_moments"])))
+    if sol == "kpm":
+        rec.update(eigenvalue=np.zeros(0), frequency=np.zeros(0), D0=rec["kpm_D0"],
+                   omega_star=rec["omega_star_kpm_resolved"],
+                   plateau_window=rec["kpm_window"], omega_min=np.nan, n_negative=np.nan,
+                   pressure=system.pressure, complete=False, plateau_source="kpm")
+        return rec
     if sol == "dense-eigvalsh":
         lam, norm = dense_eigenvalues(comm, system, kind)
         rec.update(eigenvalue=lam, error=np.full(len(lam), np.nan), norm=norm,
@@ -80,7 +90,11 @@ def spectrum_record(comm, rows, kind, req, tol):
     omega = observables.frequency(rec["eigenvalue"])
     rec["frequency"] = omega
     pos = omega[omega > 0]
-    if req.get("kpm_plateau") and not sol.startswith("dense"):  # a partial spectrum
+    if req.get("kpm") and not sol.startswith("dense"):  # a partial spectrum with KPM D0
+        d0, window = rec["kpm_D0"], rec["kpm_window"]
+        wstar = observables.omega_star(pos, system.n_modes, d0)
+        rec["plateau_source"] = "kpm"
+    elif req.get("kpm_plateau") and not sol.startswith("dense"):  # a partial spectrum
         d0, wstar, window = kpm_plateau_summary(comm, system, kind, pos)
         rec["plateau_source"] = "kpm"
     else:

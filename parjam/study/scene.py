@@ -412,6 +412,19 @@ def _obs_dos(t, protocol, ladder, lowest, min_modes):
     if out["log_bins"] and out["window"] is not None and out["window"][0] == 0 \
             and out["omega_min"] is None:
         t.fail("log_bins", "log bins over a window starting at 0 need omega_min > 0")
+    method = t.str("method", "dense", ("dense", "kpm"))
+    if method == "dense":  # the dense options only: the stage keys stay as they were
+        for key in ("moments", "probes", "max_moments"):
+            if t.has(key):
+                t.fail(key, "applies to method = \"kpm\"")
+        return out
+    if out["window"] is not None:
+        t.fail("window", "KPM gives the whole D(omega): no window with method = \"kpm\"")
+    moments = t.raw("moments", "auto")
+    if moments != "auto":
+        moments = t.int("moments", lo=16, hi=65536)
+    out.update(method="kpm", moments=moments, probes=t.int("probes", 8, lo=1, hi=1024),
+               max_moments=t.int("max_moments", 4096, lo=16, hi=65536))
     return out
 
 

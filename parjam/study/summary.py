@@ -6,7 +6,7 @@ import warnings
 import h5py
 import numpy as np
 
-from parjam import io, observables
+from parjam import io, kpm_dos, observables
 
 # --------------------------------------------------------------------------- ensemble summary
 
@@ -71,6 +71,8 @@ def write_summary(path, st, by_kind, scene, failed=()):
                 if kind == "spectrum":
                     ids = [k for k, r in enumerate(every) if "failed" not in r]
                     _spectrum_summary(g, recs, ids, dos_opts)
+                    if all("kpm_moments" in r for r in recs):
+                        _kpm_summary(g, every, recs, tag.split("/")[1], dos_opts)
                 elif kind == "softmodes":
                     g.create_dataset("overlap", data=np.array([r["overlap"] for r in recs]))
                     g.create_dataset("trial_energy",
@@ -101,6 +103,48 @@ def _spectrum_summary(g, recs, ids, opts):
     g.create_dataset("lowest_frequency", data=np.array(
         [np.min(r["frequency"][r["frequency"] > 0]) if np.any(r["frequency"] > 0) else np.nan
          for r in recs]))
+
+
+KPM_SCALARS = ("kpm_D0", "kpm_omega_star", "kpm_resolved", "kpm_n_moments", "kpm_resolution",
+               "kpm_seconds")
+
+
+def kpm_ensemble_dos(records, matrix, bins, log=False, omega_min=None):
+    """D(omega) per mode of each member from its stored KPM moments (parjam.kpm_dos) on common
+    bins up to the lowest of the members' spectral bounds sqrt(b), averaged over the members.
+    Returns centres, edges, mean, its standard error over the members, the probes' stochastic
+    error of the mean (sqrt(sum err_m^2) / members) and their quadrature sum."""
+    res = [kpm_dos.from_record(r, matrix) for r in records]
+    edges = observables.dos_edges(min(x.omega_max for x in res), bins, log, omega_min)
+    dens, errs = zip(*(x.binned_with_error(edges) for x in res))
+    mean, err_members = observables.ensemble_mean(list(dens))
+    err_probes = np.sqrt(np.sum(np.square(errs), axis=0)) / len(res)
+    err_members = np.nan_to_num(err_members)  # one member: no scatter, the probes' error only
+    return (0.5 * (edges[1:] + edges[:-1]), edges, mean, err_members, err_probes,
+            np.hypot(err_members, err_probes))
+
+
+def _kpm_summary(g, every, recs, matrix, opts):
+    """The KPM scalars per member (NaN where missing) and the ensemble D(omega) from the KPM
+    moments: this "dos" group replaces the partial spectrum's histogram (a partial spectrum
+    has no whole D(omega)); ``kpm_moments`` in it marks the source."""
+    for q in KPM_SCALARS:
+        vals = np.array([float(r.get(q, np.nan)) for r in every])
+        ds = g.create_dataset(q, data=vals)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean, err = observables.ensemble_mean(vals[:, None])
+        ds.attrs["mean"], ds.attrs["error"] = float(mean[0]), float(err[0])
+    centres, edges, mean, e_m, e_p, err = kpm_ensemble_dos(
+        recs, matrix, opts["bins"], opts["log_bins"], opts["omega_min"])
+    if "dos" in g:
+        del g["dos"]
+    d = g.create_group("dos")
+    for name, val in (("omega", centres), ("edges", edges), ("density", mean),
+                      ("density_error", err), ("density_error_members", e_m),
+                      ("density_error_probes", e_p),
+                      ("kpm_moments", np.array([int(r["kpm_n_moments"]) for r in recs]))):
+        d.create_dataset(name, data=val)
 
 
 def read_summary(path):
