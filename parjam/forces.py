@@ -4,8 +4,9 @@
 FIRE does not run here: parjam.fire hands the positions to a ``parjam.engine.SlabEngine``
 (``start_engine``), which spreads the particles over the slabs of the spatial decomposition and
 keeps no array of length N on any rank; at the end (``stop_engine``) they come back to the Vec.
-What needs the whole configuration (the packing file, checkpoints, the force scale of small
-systems) gathers it lazily, when asked (``gather``; callers drop the buffer after use).
+Nothing on the packing path gathers the whole configuration: files and checkpoints go by
+rows (parjam.statefile, parjam.checkpointio).  ``gather`` (all N positions on every rank,
+lazily) stays for tests and scripts, which drop the buffer after use.
 
 For Newton and single evaluations the Verlet list holds the pairs that touch a rank's block
 rows: on one rank from linked cells in compiled code (kernels.cell_pairs; in a box of fewer
