@@ -31,10 +31,16 @@ import argparse
 import glob
 import json
 import os
+import re
 import shlex
+import subprocess
 import sys
+import time
 
+import h5py
 import numpy as np
+
+from parjam import env, fits, io, softmodes as sm
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "scripts"))
@@ -59,8 +65,6 @@ def member_file(packdir, m):
 
 def excess_of(path):
     """Nc - Nc_iso of the non-rattlers of a packing (serial)."""
-    from parjam import env, io, softmodes as sm
-
     env.init()
     pack = io.read_packing(path)
     cs = sm.prepare(pack, [sm.Plane(0, 0.5)], allow_hyperstatic=True)
@@ -138,8 +142,6 @@ def adopt(args):
     to ROOT/N{N}/packings, seed N) and their per-member costs from its progress log: a member's
     time is from the previous member's last line to its own last one; the peak RSS is the
     whole process's (/usr/bin/time -v), an upper bound for each member."""
-    import re
-
     base = size_dir(args.root, args.n, args.seed)
     packdir = os.path.join(base, "packings")
     if os.path.exists(packdir):
@@ -168,10 +170,6 @@ def run_measured(ranks, argv, launch):
     """peak_rss.measured on ``ranks`` ranks, or under an explicit launcher (HPC: srun)."""
     if not launch:
         return measured(ranks, argv)
-    import re
-    import subprocess
-    import time
-
     t0 = time.perf_counter()
     res = subprocess.run(launch + ["/usr/bin/time", "-f", "PEAKRSS %M"] + argv,
                          capture_output=True, text=True)
@@ -182,8 +180,6 @@ def run_measured(ranks, argv, launch):
 # ----------------------------------------------------------------------------- collect
 
 def read_cut(path):
-    import h5py
-
     with h5py.File(path, "r") as f:
         g = f["softmodes"]
         cnt, te = g["count"].attrs, g["trial_energy"].attrs
@@ -211,18 +207,14 @@ def read_cut(path):
 
 
 def box_edge(path):
-    from parjam import io
-
     return float(io.read_packing(path).L)
 
 
 def mean_err(values, n_boot=2000, seed=0):
     """Mean over members and its bootstrap error (parjam.fits.bootstrap)."""
-    from parjam import fits
-
     v = np.asarray(values, float)
     if len(v) < 2:
-        return float(np.mean(v)), float("nan")
+        return np.mean(v, axis=0).tolist(), np.full(np.shape(v)[1:], np.nan).tolist()
     best, boots = fits.bootstrap(lambda rows: np.mean(v[rows], axis=0), len(v), n_boot, seed)
     return best.tolist(), np.std(boots, axis=0).tolist()
 
@@ -234,8 +226,6 @@ def bound(c_like, e0):
 
 
 def collect(args):
-    from parjam import fits
-
     members, summary = [], {}
     series = [(load(os.path.join(b, "costs.json"), None), b)
               for b in sorted(glob.glob(os.path.join(args.root, "N*")))]

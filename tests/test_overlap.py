@@ -9,15 +9,18 @@ the trace of the soft-space projector per slab: the same for every orthonormal b
 same space.  Checked here against a dense SVD null space (projector built directly), against a
 random rotation of the basis, against SLEPc's Krylov basis, and 1 rank against all ranks."""
 
+import json
 import os
+import shutil
+import sys
 
 import numpy as np
 import pytest
 
-from parjam import env, io, softmodes as sm
+from parjam import cli, env, io, softmodes as sm
 from parjam.testing import softmodes_reference as ref
 
-from conftest import DATA
+from conftest import DATA, ROOT
 
 PETSc = env.petsc()
 WORLD = PETSc.COMM_WORLD
@@ -128,3 +131,47 @@ def test_uniform_modes_give_f_one_and_the_cube_has_soft_modes_at_its_faces(pack)
     assert np.allclose(f_t, counts * BINS / cs.n, atol=1e-12)
     f = res.overlap[:, 1]
     assert f[0] + f[-1] > 2.0
+
+
+def test_fx_vs_n_collects_cut_files_and_the_figure_draws_them(shared_tmp):
+    """scripts/fx_vs_n.py's layout on two isostatic packings of tests/data (N = 256, 512), both
+    geometries cut by ``parjam softmodes``: ``collect`` reads back the files' f(x) and c
+    (never recomputing them), its means are the members' values, and ``parjam plot`` draws the
+    JSON."""
+    sys.path.insert(0, os.path.join(ROOT, "scripts"))
+    import fx_vs_n
+
+    mpi = WORLD.tompi4py()
+    root = os.path.join(shared_tmp, "fxn")
+    for n, name in ((256, "soft_d3_N256_m0.h5"), (512, "soft_d3_N512_m0.h5")):
+        base = fx_vs_n.size_dir(root, n, None)
+        packdir, cutdir = os.path.join(base, "packings"), os.path.join(base, "cuts")
+        if mpi.Get_rank() == 0:
+            os.makedirs(packdir)
+            os.makedirs(cutdir)
+            shutil.copy(os.path.join(DATA, name), os.path.join(packdir, "member0000_dphi1.0e-08.h5"))
+            fx_vs_n.save(os.path.join(base, "costs.json"),
+                         {"N": n, "seed": n, "dphi": 1e-8, "members": {"0": {"excess": 0}}})
+        mpi.Barrier()
+        for geo, (extra, e0) in fx_vs_n.GEOMETRIES.items():
+            assert cli.main(["softmodes", os.path.join(packdir, "member0000_dphi1.0e-08.h5"),
+                             *extra, "--e0", str(e0), "-q",
+                             "--out", os.path.join(cutdir, f"m0_{geo}.h5")]) == 0
+    out = os.path.join(root, "results.json")
+    if mpi.Get_rank() == 0:
+        fx_vs_n.main(["collect", "--root", root, "--out", out])
+    mpi.Barrier()
+    res = json.load(open(out))
+    assert res["packs"]["256"]["isostatic"] == 1
+    for geo in fx_vs_n.GEOMETRIES:
+        per = res["summary"][geo]["per_N"]
+        assert sorted(per) == ["256", "512"]
+        for n in ("256", "512"):
+            cut = [m for m in res["members"] if m["N"] == int(n)][0]["cuts"][geo]
+            assert per[n]["c"] == pytest.approx(min(cut["f"])) == pytest.approx(cut["c"])
+            assert sum(per[n]["f"]) / len(per[n]["f"]) == pytest.approx(1.0, abs=1e-12)
+            assert 0.0 <= per[n]["qpq_0.1"] <= 1.0
+        assert set(res["summary"][geo]["fit_against_L"]) >= {"omega_t2", "c"}
+    png = os.path.join(root, "fx.png")
+    assert cli.main(["plot", out, "--out", png, "-q"]) == 0
+    assert os.path.getsize(png) > 10_000
