@@ -45,7 +45,7 @@ from parjam import env, fits, io, softmodes as sm
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "scripts"))
 
-from peak_rss import measured  # noqa: E402
+from peak_rss import mpirun  # noqa: E402
 
 GEOMETRIES = {  # name: (parjam softmodes arguments, e0 of its trial modes)
     "plane": (["--cut", "x=0.5"], 0.1),
@@ -109,10 +109,11 @@ def run_size(n, args):
                                     "--phic-method", "extrapolate", "--seed", str(seed),
                                     "--members", str(m + 1), "--no-phic-file", "-q",
                                     "--out", packdir]
-            mb, secs, res = run_measured(ranks, argv, launch)
+            mb, secs, cpu, res = run_measured(ranks, argv, launch)
             if res.returncode != 0 or member_file(packdir, m) is None:
                 raise SystemExit(f"pack N = {n} member {m} failed: {res.stderr[-500:]}")
-            rec["pack"] = {"seconds": secs, "peak_mb_per_rank": max(mb), "ranks": ranks}
+            rec["pack"] = {"seconds": secs, "cpu_seconds": cpu, "peak_mb_per_rank": max(mb),
+                           "ranks": ranks}
         if "excess" not in rec:
             rec["excess"], rec["N_active"] = excess_of(member_file(packdir, m))
         save(costs_path, costs)
@@ -129,10 +130,11 @@ def run_size(n, args):
                                     "--out", out]
             if args.scratch:
                 argv += ["--scratch", args.scratch]
-            mb, secs, res = run_measured(ranks, argv, launch)
+            mb, secs, cpu, res = run_measured(ranks, argv, launch)
             if res.returncode != 0:
                 raise SystemExit(f"softmodes N = {n} member {m} {geo}: {res.stderr[-500:]}")
-            rec[geo] = {"seconds": secs, "peak_mb_per_rank": max(mb), "ranks": ranks}
+            rec[geo] = {"seconds": secs, "cpu_seconds": cpu, "peak_mb_per_rank": max(mb),
+                        "ranks": ranks}
             save(costs_path, costs)
     print(f"N = {n}: {iso} isostatic member(s) of {len(costs['members'])} packed", flush=True)
 
@@ -154,6 +156,7 @@ def adopt(args):
         last[int(m)] = float(t)
     peak = re.search(r"Maximum resident set size \(kbytes\): (\d+)", text)
     peak_mb = int(peak.group(1)) / 1024.0 if peak else None
+    cpu = [float(x) for x in re.findall(r"(?:User|System) time \(seconds\): ([0-9.]+)", text)]
     costs = {"N": args.n, "seed": args.seed or args.n, "dphi": args.dphi, "members": {}}
     prev = 0.0
     for m in sorted(last):
@@ -162,19 +165,27 @@ def adopt(args):
         costs["members"][str(m)] = {"pack": {"seconds": last[m] - prev, "peak_mb_per_rank": peak_mb,
                                              "ranks": 1, "from": "log of one --members process"}}
         prev = last[m]
+    for rec in costs["members"].values():  # the process's CPU time shared evenly
+        rec["pack"]["cpu_seconds"] = sum(cpu) / len(costs["members"]) if cpu else None
     save(os.path.join(base, "costs.json"), costs)
     print(f"adopted {len(costs['members'])} member(s) of N = {args.n}")
 
 
 def run_measured(ranks, argv, launch):
-    """peak_rss.measured on ``ranks`` ranks, or under an explicit launcher (HPC: srun)."""
-    if not launch:
-        return measured(ranks, argv)
+    """Run ``argv`` on ``ranks`` ranks ($PARJAM_MPIRUN, scripts/peak_rss.py) or under an explicit
+    launcher (HPC: srun), one thread per rank: (peak RSS per rank in MB, wall seconds, CPU
+    seconds summed over the ranks, CompletedProcess).  The CPU time is the cost to quote on a
+    shared machine, where the wall time depends on the load."""
+    cmd = (launch or mpirun() + ["-n", str(ranks)]) + [
+        "/usr/bin/time", "-f", "PEAKRSS %M CPU %U %S"] + list(argv)
     t0 = time.perf_counter()
-    res = subprocess.run(launch + ["/usr/bin/time", "-f", "PEAKRSS %M"] + argv,
-                         capture_output=True, text=True)
-    mb = [int(x) / 1024.0 for x in re.findall(r"PEAKRSS (\d+)", res.stderr)] or [float("nan")]
-    return mb, time.perf_counter() - t0, res
+    res = subprocess.run(cmd, capture_output=True, text=True,
+                         env=dict(os.environ, OMP_NUM_THREADS="1"))
+    secs = time.perf_counter() - t0
+    found = re.findall(r"PEAKRSS (\d+) CPU ([0-9.]+) ([0-9.]+)", res.stderr)
+    mb = [int(m) / 1024.0 for m, _, _ in found] or [float("nan")]
+    cpu = sum(float(u) + float(s) for _, u, s in found) if found else float("nan")
+    return mb, secs, cpu, res
 
 
 # ----------------------------------------------------------------------------- collect
@@ -217,6 +228,17 @@ def mean_err(values, n_boot=2000, seed=0):
         return np.mean(v, axis=0).tolist(), np.full(np.shape(v)[1:], np.nan).tolist()
     best, boots = fits.bootstrap(lambda rows: np.mean(v[rows], axis=0), len(v), n_boot, seed)
     return best.tolist(), np.std(boots, axis=0).tolist()
+
+
+def cost_summary(records, what):
+    """Mean wall and CPU seconds and the largest peak RSS per rank of some measured commands."""
+    def mean(key):
+        vals = [r[key] for r in records if r.get(key) is not None and np.isfinite(r[key])]
+        return float(np.mean(vals)) if vals else None
+
+    peaks = [r["peak_mb_per_rank"] for r in records if r.get("peak_mb_per_rank") is not None]
+    return {f"{what}_seconds": mean("seconds"), f"{what}_cpu_seconds": mean("cpu_seconds"),
+            f"{what}_peak_mb": float(np.max(peaks)) if peaks else None, f"{what}_timed": len(records)}
 
 
 def bound(c_like, e0):
@@ -270,9 +292,9 @@ def collect(args):
                 cg = s["c"] * (0.5 if geo == "plane" else 0.125)
                 s[f"bound_c_{key}"] = ratio * bound(cg, e0)
                 s[f"bound_mean_e_{key}"] = ratio * bound(s["mean_e"], e0)
-            costs = [c["cost"] for c in cuts if c.get("cost")]
-            s["cut_seconds"] = float(np.mean([c["seconds"] for c in costs])) if costs else None
-            s["cut_peak_mb"] = float(np.max([c["peak_mb_per_rank"] for c in costs])) if costs else None
+            s.update(cost_summary([c["cost"] for c in cuts if c.get("cost")], "cut"))
+            s["cut_solver_seconds"] = float(np.mean([sum(c["seconds"].values()) for c in cuts]))
+            s["cut_solver_peak_mb"] = float(np.max([c["peak_rss_mb"] for c in cuts]))
             per_n[str(n)] = s
         fit = {}
         if len(per_n) >= 2:
@@ -289,12 +311,10 @@ def collect(args):
     packs = {}
     for n in sizes:
         rows = [r for r in members if r["N"] == n]
-        timed = [r["pack"] for r in rows if r.get("pack")]
         packs[str(n)] = {
             "tried": len(rows), "isostatic": sum(r["excess"] == 0 for r in rows),
             "excess": [r["excess"] for r in rows],
-            "seconds_mean": float(np.mean([t["seconds"] for t in timed])) if timed else None,
-            "peak_mb": float(np.max([t["peak_mb_per_rank"] for t in timed])) if timed else None}
+            **cost_summary([r["pack"] for r in rows if r.get("pack")], "pack")}
     out = {"format": "parjam-fx-vs-n", "root": os.path.abspath(args.root),
            "geometries": {k: {"args": v[0], "e0": v[1]} for k, v in GEOMETRIES.items()},
            "packs": packs, "summary": summary, "members": members}
