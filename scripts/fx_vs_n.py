@@ -310,7 +310,7 @@ def collect(args):
         summary[geo] = {"e0_run": e0_run, "per_N": per_n, "fit_against_L": fit}
     packs = {}
     for n in sizes:
-        rows = [r for r in members if r["N"] == n]
+        rows = [r for r in members if r["N"] == n and r["excess"] is not None]  # checked
         packs[str(n)] = {
             "tried": len(rows), "isostatic": sum(r["excess"] == 0 for r in rows),
             "excess": [r["excess"] for r in rows],

@@ -188,6 +188,15 @@ def overlap_figure(path_h5, path):
     _save(plt, fig, path)
 
 
+def log_ticks_at(axis, values, fmt="{:g}"):
+    """A log axis labelled at the data's values only (no overlapping minor labels)."""
+    from matplotlib.ticker import NullFormatter
+
+    axis.set_ticks(values)
+    axis.set_ticklabels([fmt.format(v) for v in values])
+    axis.set_minor_formatter(NullFormatter())
+
+
 def fx_vs_n_figure(results, path):
     """From the JSON of scripts/fx_vs_n.py (read, never recomputed): f(x) against x/L per N for
     the one-plane cut and the cube with all faces cut (bands: bootstrap errors over members),
@@ -227,8 +236,9 @@ def fx_vs_n_figure(results, path):
             a.errorbar(N, y, e, marker=marks[geo], ls=ls, ms=4, capsize=2,
                        label=f"{title[geo].split(' (')[0]}: {lab}")
     a.set_xscale("log")
+    log_ticks_at(a.xaxis, N)
     a.set(xlabel="N", ylabel="c = min f(x) L", title="lower bound c of f against N")
-    a.set_ylim(bottom=0)
+    a.set_ylim(0, 1)
     a.legend(fontsize=LEGEND_FONTSIZE)
     for k, geo in enumerate(geos):
         a = ax[1, k]
@@ -247,9 +257,10 @@ def fx_vs_n_figure(results, path):
                 a.plot(N, np.maximum(bc, 0), ls="--", color=line[0].get_color(), lw=0.8,
                        label="bound (c/2 - e0)/(1 - e0)" if i == 0 else None)
         a.set_xscale("log")
+        log_ticks_at(a.xaxis, N)
         a.set(xlabel="N", ylabel="q'/q", title=f"extended fraction, {title[geo]}")
-        a.set_ylim(bottom=0)
-        a.legend(fontsize=LEGEND_FONTSIZE, ncol=2)
+        a.set_ylim(0, 1.3 if geo == "plane" else 0.6)
+        a.legend(fontsize=LEGEND_FONTSIZE, ncol=2, loc="upper center")
     a = ax[1, 2]
     for geo in geos:
         per, fit = summary[geo]["per_N"], summary[geo].get("fit_against_L", {})
@@ -269,8 +280,10 @@ def fx_vs_n_figure(results, path):
         a.plot(Ls, per0[n0[0]]["omega_t2"] * (Ls / Ls[0]) ** -2, "k:", lw=0.8, label="~ L^-2")
     a.set_xscale("log")
     a.set_yscale("log")
+    if geos:
+        log_ticks_at(a.xaxis, Ls, "{:.1f}")
     a.set(xlabel="L (diameters)", ylabel="energy (k)", title="trial modes against L")
-    a.legend(fontsize=LEGEND_FONTSIZE)
+    a.legend(fontsize=LEGEND_FONTSIZE, loc="upper right")
     _save(plt, fig, path)
 
 
