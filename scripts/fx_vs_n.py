@@ -322,6 +322,51 @@ def collect(args):
     print(f"wrote {args.out}: {len(members)} members, N = {sizes}")
 
 
+def fmt_or_dash(v, fmt):
+    return "-" if v is None else fmt.format(v)
+
+
+def pm(v, e, fmt="{:.3f}"):
+    return fmt.format(v) + ("" if e is None or not np.isfinite(e) else " +- " + fmt.format(e))
+
+
+def tables(args):
+    """The markdown tables of docs/reproduction.md section 12, from the results JSON."""
+    res = load(args.results, None)
+    lines = ["| N | packed (checked) | isostatic | Nc - Nc_iso | pack CPU s / wall s per member "
+             "| pack peak MB |", "|---|---|---|---|---|---|"]
+    for n, p in sorted(res["packs"].items(), key=lambda kv: int(kv[0])):
+        cpu, wall, peak = (p.get(f"pack_{k}") for k in ("cpu_seconds", "seconds", "peak_mb"))
+        lines.append(f"| {n} | {p['tried']} | {p['isostatic']} | "
+                     + ", ".join(f"{x:+d}" for x in p["excess"])
+                     + f" | {fmt_or_dash(cpu, '{:.1f}')} / {fmt_or_dash(wall, '{:.0f}')} | "
+                     f"{fmt_or_dash(peak, '{:.0f}')} |")
+    print("\n".join(lines) + "\n")
+    for geo, g in res["summary"].items():
+        print(f"{geo} (e0 of the trial modes {g['e0_run']:g})\n")
+        print("| N | members | L | c | c, localised out | q'/q e0 = 0.05 | q'/q e0 = 0.1 | "
+              "q'/q e0 = 0.2 | mean e | bound (mean e) 0.1 / 0.2 | bound (c) 0.1 / 0.2 | "
+              "omega_t^2 | <g dR|M|g dR> | cut CPU s | solver wall s | peak MB |")
+        print("|" + "---|" * 16)
+        for n, s in sorted(g["per_N"].items(), key=lambda kv: int(kv[0])):
+            print(f"| {n} | {s['members']} | {s['L']:.2f} | {pm(s['c'], s['c_err'])} | "
+                  f"{pm(s['c_nontrivial'], s['c_nontrivial_err'])} | "
+                  + " | ".join(pm(s[f'qpq_{e}'], s[f'qpq_{e}_err']) for e in ("0.05", "0.1", "0.2"))
+                  + f" | {s['mean_e']:.3f} | {s['bound_mean_e_0.1']:.3f} / "
+                  f"{s['bound_mean_e_0.2']:.3f} | {s['bound_c_0.1']:.3f} / {s['bound_c_0.2']:.3f} | "
+                  f"{pm(s['omega_t2'], s['omega_t2_err'], '{:.4f}')} | "
+                  f"{pm(s['mean_modulated_energy'], s['mean_modulated_energy_err'], '{:.4f}')} | "
+                  f"{fmt_or_dash(s['cut_cpu_seconds'], '{:.1f}')} | "
+                  f"{s['cut_solver_seconds']:.2f} | {fmt_or_dash(s['cut_peak_mb'], '{:.0f}')} |")
+        print()
+        for key, f in g["fit_against_L"].items():
+            print(f"- {key} ~ L^({f['exponent']:.3f} +- {f['exponent_err']:.3f})")
+        print()
+        for n, s in sorted(g["per_N"].items(), key=lambda kv: int(kv[0])):
+            print(f"- f(x), N = {n}: " + " ".join(f"{v:.2f}" for v in s["f"]))
+        print()
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -346,8 +391,12 @@ def main(argv=None):
     c = sub.add_parser("collect", help="read every cut file into one results JSON")
     c.add_argument("--root", required=True)
     c.add_argument("--out", required=True)
+    t = sub.add_parser("tables", help="print the markdown tables of the results JSON")
+    t.add_argument("results")
     args = p.parse_args(argv)
-    if args.cmd == "adopt":
+    if args.cmd == "tables":
+        tables(args)
+    elif args.cmd == "adopt":
         adopt(args)
     elif args.cmd == "run":
         if args.members < 1 or args.max_tries < args.members or args.dphi <= 0:
