@@ -292,6 +292,10 @@ def collect(args):
                 cg = s["c"] * (0.5 if geo == "plane" else 0.125)
                 s[f"bound_c_{key}"] = ratio * bound(cg, e0)
                 s[f"bound_mean_e_{key}"] = ratio * bound(s["mean_e"], e0)
+            # the variational count: eigenmodes of the uncut M below 2 omega_t^2 against q'/2
+            s["variational_ok"] = sum(c["n_below_2omega_t2"] >= 0.5 * c["q_prime"] for c in cuts)
+            s["n_below_over_half_qprime"] = float(np.min([c["n_below_2omega_t2"] / (0.5 * c["q_prime"])
+                                                          for c in cuts]))
             s.update(cost_summary([c["cost"] for c in cuts if c.get("cost")], "cut"))
             s["cut_solver_seconds"] = float(np.mean([sum(c["seconds"].values()) for c in cuts]))
             s["cut_solver_peak_mb"] = float(np.max([c["peak_rss_mb"] for c in cuts]))
