@@ -143,7 +143,8 @@ def adopt(args):
     """Take over members packed by one ``parjam pack --members M`` process (its --out DIR moved
     to ROOT/N{N}/packings, seed N) and their per-member costs from its progress log: a member's
     time is from the previous member's last line to its own last one; the peak RSS is the
-    whole process's (/usr/bin/time -v), an upper bound for each member."""
+    whole process's (/usr/bin/time -v), an upper bound for each member; its CPU time is the
+    process's, times the fraction of its wall time the adopted members took, shared evenly."""
     base = size_dir(args.root, args.n, args.seed)
     packdir = os.path.join(base, "packings")
     if os.path.exists(packdir):
@@ -165,8 +166,14 @@ def adopt(args):
         costs["members"][str(m)] = {"pack": {"seconds": last[m] - prev, "peak_mb_per_rank": peak_mb,
                                              "ranks": 1, "from": "log of one --members process"}}
         prev = last[m]
-    for rec in costs["members"].values():  # the process's CPU time shared evenly
-        rec["pack"]["cpu_seconds"] = sum(cpu) / len(costs["members"]) if cpu else None
+    # the process's CPU time shared evenly over the adopted members, in proportion to the wall
+    # time they took of the whole process (it may have been stopped inside a further member)
+    wall = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): ([0-9:.]+)", text)
+    total = sum(float(x) * 60 ** k for k, x in enumerate(reversed(wall.group(1).split(":")))) \
+        if wall else None
+    for rec in costs["members"].values():
+        rec["pack"]["cpu_seconds"] = (sum(cpu) * min(prev / total, 1.0) / len(costs["members"])
+                                      if cpu and total else None)
     save(os.path.join(base, "costs.json"), costs)
     print(f"adopted {len(costs['members'])} member(s) of N = {args.n}")
 
