@@ -374,8 +374,51 @@ def tables(args):
             print(f"- {key} ~ L^({f['exponent']:.3f} +- {f['exponent_err']:.3f})")
         print()
         for n, s in sorted(g["per_N"].items(), key=lambda kv: int(kv[0])):
-            print(f"- f(x), N = {n}: " + " ".join(f"{v:.2f}" for v in s["f"]))
+            print(f"- f(x), N = {n}: " + " ".join(f"{v:.2f}" for v in s["f"])
+                  + f"; variational count met in {s['variational_ok']} of {s['members']} "
+                  f"(smallest count / (q'/2): {s['n_below_over_half_qprime']:.1f})")
         print()
+    print("\n".join(cost_lines(res)))
+
+
+def extrapolate(ns, values, targets):
+    """Power law through the two largest sizes: (exponent, value at each target N)."""
+    (n1, v1), (n2, v2) = sorted(zip(ns, values))[-2:]
+    b = np.log(v2 / v1) / np.log(n2 / n1)
+    return float(b), [float(v2 * (t / n2) ** b) for t in targets]
+
+
+def cost_lines(res, targets=(16384, 65536)):
+    """Measured per-member costs and their extrapolation to ``targets`` (markdown lines)."""
+    rows = [("pack", "CPU s", {n: p.get("pack_cpu_seconds") for n, p in res["packs"].items()}),
+            ("pack", "peak MB", {n: p.get("pack_peak_mb") for n, p in res["packs"].items()})]
+    for geo, g in res["summary"].items():
+        per = g["per_N"]
+        rows += [(f"cut {geo}", "CPU s", {n: s.get("cut_cpu_seconds") for n, s in per.items()}),
+                 (f"cut {geo}", "solver wall s", {n: s.get("cut_solver_seconds")
+                                                  for n, s in per.items()}),
+                 (f"cut {geo}", "peak MB", {n: s.get("cut_peak_mb") for n, s in per.items()}),
+                 (f"cut {geo}", "n_soft", {n: s.get("n_soft") for n, s in per.items()})]
+    ns_all = sorted({int(n) for _, _, v in rows for n in v})
+    out = ["| stage | quantity | " + " | ".join(f"N = {n}" for n in ns_all)
+           + " | exponent (two largest N) | " + " | ".join(f"N = {t} (extrapolated)" for t in targets)
+           + " |", "|" + "---|" * (3 + len(ns_all) + len(targets))]
+    for stage, what, vals in rows:
+        known = {int(n): v for n, v in vals.items() if v is not None and np.isfinite(v)}
+        cells = [fmt_or_dash(known.get(n), "{:.3g}") for n in ns_all]
+        if len(known) >= 2:
+            b, pred = extrapolate(list(known), list(known.values()), targets)
+            tail = [f"{b:.2f}"] + [f"{v:.3g}" for v in pred]
+        else:
+            tail = ["-"] * (1 + len(targets))
+        out.append(f"| {stage} | {what} | " + " | ".join(cells + tail) + " |")
+        if what == "n_soft" and len(known) >= 2:  # the basis in memory, 8 N d n_soft bytes
+            cells = [fmt_or_dash(None if n not in known else 24e-6 * n * known[n], "{:.3g}")
+                     for n in ns_all]
+            out.append(f"| {stage} | basis MB (8 x 3N x n_soft) | " + " | ".join(cells) + " | "
+                       f"{b + 1:.2f} | " + " | ".join(f"{24e-6 * t * v:.3g}"
+                                                      for t, v in zip(targets, pred)) + " |")
+    return out
 
 
 def main(argv=None):
