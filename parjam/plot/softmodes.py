@@ -283,6 +283,8 @@ def fx_vs_n_figure(results, path):
     if geos:
         log_ticks_at(a.xaxis, Ls, "{:.1f}")
     a.set(xlabel="L (diameters)", ylabel="energy (k)", title="trial modes against L")
+    lo, hi = a.get_ylim()
+    a.set_ylim(lo, hi * 8)  # room for the legend above the curves
     a.legend(fontsize=LEGEND_FONTSIZE, loc="upper right")
     _save(plt, fig, path)
 
