@@ -207,12 +207,14 @@ def read_cut(path):
         return {
             "x": g["overlap"][:, 0].tolist(), "f": g["overlap"][:, 1].tolist(),
             "f_nontrivial": g["overlap"][:, 2].tolist(),
-            "c": float(g["overlap"].attrs["c"]), "c_nontrivial": float(g["overlap"].attrs["c_nontrivial"]),
+            "c": float(g["overlap"].attrs["c"]),
+            "c_nontrivial": float(g["overlap"].attrs["c_nontrivial"]),
             "q": q, "n_soft": n_basis, "count": int(g["count"][()]),
             "localised": int(cnt["localised"]), "excess": int(cnt["excess"]),
             "N_active": int(cnt["N_active"]),
             "mean_e": float(np.mean(ext)),
-            "q_prime_over_q": {f"{e0:g}": float(np.count_nonzero(ext > e0) / q) for e0 in E0_REPORT},
+            "q_prime_over_q": {f"{e0:g}": float(np.count_nonzero(ext > e0) / q)
+                               for e0 in E0_REPORT},
             "ladder": fr.tolist(),
             "e0": float(te["e0"]), "omega_t2": float(te["omega_t2"]),
             "omega_L2": float(te["omega_L2"]), "q_prime": int(te["q_prime"]),
@@ -245,7 +247,8 @@ def cost_summary(records, what):
 
     peaks = [r["peak_mb_per_rank"] for r in records if r.get("peak_mb_per_rank") is not None]
     return {f"{what}_seconds": mean("seconds"), f"{what}_cpu_seconds": mean("cpu_seconds"),
-            f"{what}_peak_mb": float(np.max(peaks)) if peaks else None, f"{what}_timed": len(records)}
+            f"{what}_peak_mb": float(np.max(peaks)) if peaks else None,
+            f"{what}_timed": len(records)}
 
 
 def bound(c_like, e0):
@@ -301,8 +304,8 @@ def collect(args):
                 s[f"bound_mean_e_{key}"] = ratio * bound(s["mean_e"], e0)
             # the variational count: eigenmodes of the uncut M below 2 omega_t^2 against q'/2
             s["variational_ok"] = sum(c["n_below_2omega_t2"] >= 0.5 * c["q_prime"] for c in cuts)
-            s["n_below_over_half_qprime"] = float(np.min([c["n_below_2omega_t2"] / (0.5 * c["q_prime"])
-                                                          for c in cuts]))
+            s["n_below_over_half_qprime"] = float(np.min(
+                [c["n_below_2omega_t2"] / (0.5 * c["q_prime"]) for c in cuts]))
             s.update(cost_summary([c["cost"] for c in cuts if c.get("cost")], "cut"))
             s["cut_solver_seconds"] = float(np.mean([sum(c["seconds"].values()) for c in cuts]))
             s["cut_solver_peak_mb"] = float(np.max([c["peak_rss_mb"] for c in cuts]))
@@ -315,7 +318,8 @@ def collect(args):
             for key in ("omega_t2", "mean_modulated_energy", "c", "c_nontrivial"):
                 table = np.full((width, len(ns)), np.nan)
                 for j, n in enumerate(ns):
-                    vals = [r["cuts"][geo][key] for r in members if r["N"] == n and geo in r["cuts"]]
+                    vals = [r["cuts"][geo][key] for r in members
+                            if r["N"] == n and geo in r["cuts"]]
                     table[:len(vals), j] = vals
                 fit[key] = fits.fit_power(L, table)
         summary[geo] = {"e0_run": e0_run, "per_N": per_n, "fit_against_L": fit}
@@ -364,7 +368,8 @@ def tables(args):
                   f"{pm(s['c_nontrivial'], s['c_nontrivial_err'])} | "
                   + " | ".join(pm(s[f'qpq_{e}'], s[f'qpq_{e}_err']) for e in ("0.05", "0.1", "0.2"))
                   + f" | {s['mean_e']:.3f} | {s['bound_mean_e_0.1']:.3f} / "
-                  f"{s['bound_mean_e_0.2']:.3f} | {s['bound_c_0.1']:.3f} / {s['bound_c_0.2']:.3f} | "
+                  f"{s['bound_mean_e_0.2']:.3f} | {s['bound_c_0.1']:.3f} / "
+                  f"{s['bound_c_0.2']:.3f} | "
                   f"{pm(s['omega_t2'], s['omega_t2_err'], '{:.4f}')} | "
                   f"{pm(s['mean_modulated_energy'], s['mean_modulated_energy_err'], '{:.4f}')} | "
                   f"{fmt_or_dash(s['cut_cpu_seconds'], '{:.1f}')} | "
@@ -401,7 +406,8 @@ def cost_lines(res, targets=(16384, 65536)):
                  (f"cut {geo}", "n_soft", {n: s.get("n_soft") for n, s in per.items()})]
     ns_all = sorted({int(n) for _, _, v in rows for n in v})
     out = ["| stage | quantity | " + " | ".join(f"N = {n}" for n in ns_all)
-           + " | exponent (two largest N) | " + " | ".join(f"N = {t} (extrapolated)" for t in targets)
+           + " | exponent (two largest N) | "
+           + " | ".join(f"N = {t} (extrapolated)" for t in targets)
            + " |", "|" + "---|" * (3 + len(ns_all) + len(targets))]
     for stage, what, vals in rows:
         known = {int(n): v for n, v in vals.items() if v is not None and np.isfinite(v)}

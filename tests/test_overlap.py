@@ -149,7 +149,8 @@ def test_fx_vs_n_collects_cut_files_and_the_figure_draws_them(shared_tmp):
         if mpi.Get_rank() == 0:
             os.makedirs(packdir)
             os.makedirs(cutdir)
-            shutil.copy(os.path.join(DATA, name), os.path.join(packdir, "member0000_dphi1.0e-08.h5"))
+            shutil.copy(os.path.join(DATA, name),
+                        os.path.join(packdir, "member0000_dphi1.0e-08.h5"))
             fx_vs_n.save(os.path.join(base, "costs.json"),
                          {"N": n, "seed": n, "dphi": 1e-8, "members": {"0": {"excess": 0}}})
         mpi.Barrier()

@@ -251,7 +251,7 @@ def fx_vs_n_figure(results, path):
             line = a.errorbar(N, y, e, marker="o", ms=4, capsize=2, label=f"q'/q, e0 = {e0}")
             b = np.array([per[n][f"bound_mean_e_{e0}"] for n in ns])
             a.plot(N, np.maximum(b, 0), ls=":", color=line[0].get_color(),
-                   label=f"bound (mean e - e0)/(1 - e0)" if i == 0 else None)
+                   label="bound (mean e - e0)/(1 - e0)" if i == 0 else None)
             if geo == "plane":
                 bc = np.array([per[n][f"bound_c_{e0}"] for n in ns])
                 a.plot(N, np.maximum(bc, 0), ls="--", color=line[0].get_color(), lw=0.8,
