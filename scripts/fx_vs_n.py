@@ -1,9 +1,10 @@
 """The overlap function f(x) of the soft modes against N (issue 23, part 2; docs/reproduction.md
 section 12): isostatic members at several N, both cut geometries, one results JSON.
 
-    python scripts/fx_vs_n.py run --n 1024 4096 --members 5 --root DIR [--launch "mpirun -n 1"]
+    python scripts/fx_vs_n.py run --n 1024 4096 --members 5 --root DIR [--launch "srun"]
     python scripts/fx_vs_n.py adopt --n N --packings OUT --log LOG --root DIR   (optional)
     python scripts/fx_vs_n.py collect --root DIR --out results.json
+    python scripts/fx_vs_n.py tables results.json      # the tables of reproduction.md sec. 12
     parjam plot results.json --out docs/img/fx_vs_n.png
 
 ``run``, for each N (3D, monodisperse, harmonic):
