@@ -27,6 +27,7 @@ KINDS = {
     "softmodes": (("overlap",), False, "parjam softmodes"),
     "packing": (("softfig", "figs"), False, "parjam pack (2D)"),
     "scaling": (("scaling", "lengths"), True, "scripts/moduli_scaling.py (JSON)"),
+    "fxn": (("fx_vs_n",), False, "scripts/fx_vs_n.py collect (JSON)"),
 }
 
 MAX_NCUT = 100_000  # more contacts than a plane of any packing parjam handles crosses
@@ -41,6 +42,8 @@ FIGURE_HELP = {
     "figs": "Fig. 'figs': which contacts a plane cut and 2^d sub-boxes remove",
     "scaling": "B, G and G/B against dphi with fitted slopes",
     "lengths": "l*, l_L, l_T against dz",
+    "fx_vs_n": "f(x) per N for both cut geometries, c and q'/q against N, trial energies "
+               "against L",
 }
 
 
@@ -97,7 +100,11 @@ def classify(path):
         if isinstance(data, dict) and isinstance(data.get("fits"), dict) and isinstance(
                 data.get("rows"), list) and data["rows"]:
             return "scaling"
-        raise ParjamError(f"{path}: not a JSON of scripts/moduli_scaling.py (no fits and rows)")
+        if isinstance(data, dict) and data.get("format") == "parjam-fx-vs-n" and isinstance(
+                data.get("summary"), dict):
+            return "fxn"
+        raise ParjamError(f"{path}: not a JSON of scripts/moduli_scaling.py (no fits and rows) "
+                          "or of scripts/fx_vs_n.py")
     if not h5py.is_hdf5(path):
         raise ParjamError(f"{path}: not an HDF5 file")
     try:
@@ -276,6 +283,9 @@ def load(kind, paths):
             raise ParjamError(f"{paths[0]}: softfig and figs draw 2D packings, this one is "
                               f"{pack.d}D")
         return pack
+    if kind == "fxn":
+        with open(paths[0]) as fh:
+            return json.load(fh)
     if kind == "scaling":
         out = []
         for p in paths:
@@ -348,6 +358,12 @@ def _scaling(results, out, args):
     scaling_figure(results, out)
 
 
+def _fx_vs_n(results, out, args):
+    from parjam.plot.softmodes import fx_vs_n_figure
+
+    fx_vs_n_figure(results, out)
+
+
 def _lengths(results, out, args):
     from parjam.plot.moduli import lengths_figure
 
@@ -356,4 +372,4 @@ def _lengths(results, out, args):
 
 DRAW = {"spectra": _spectra, "dos": _dos, "structure": _structure, "moduli": _moduli,
         "overlap": _overlap, "softfig": _softfig, "figs": _figs, "scaling": _scaling,
-        "lengths": _lengths}
+        "lengths": _lengths, "fx_vs_n": _fx_vs_n}

@@ -188,6 +188,107 @@ def overlap_figure(path_h5, path):
     _save(plt, fig, path)
 
 
+def log_ticks_at(axis, values, fmt="{:g}"):
+    """A log axis labelled at the data's values only (no overlapping minor labels)."""
+    from matplotlib.ticker import NullFormatter
+
+    axis.set_ticks(values)
+    axis.set_ticklabels([fmt.format(v) for v in values])
+    axis.set_minor_formatter(NullFormatter())
+
+
+def fx_vs_n_figure(results, path):
+    """From the JSON of scripts/fx_vs_n.py (read, never recomputed): f(x) against x/L per N for
+    the one-plane cut and the cube with all faces cut (bands: bootstrap errors over members),
+    c and q'/q against N with the paper's variational bound, and the trial energies against L
+    with their fitted exponents (docs/reproduction.md section 12)."""
+    summary = results["summary"]
+    geos = [g for g in ("plane", "faces") if summary.get(g, {}).get("per_N")]
+    title = {"plane": "one plane cut (x = L/2)", "faces": "all faces cut (cube)"}
+    plt = pyplot()
+    fig, ax = plt.subplots(2, 3, figsize=(13, 7.6))
+    cmap = plt.get_cmap("viridis")
+    for k, geo in enumerate(geos):
+        per = summary[geo]["per_N"]
+        ns = sorted(per, key=int)
+        a = ax[0, k]
+        for j, n in enumerate(ns):
+            s = per[n]
+            x, f, err = (np.asarray(s[key], float) for key in ("x", "f", "f_err"))
+            col = cmap(j / max(len(ns) - 1, 1))
+            a.plot(x, f, "-o", ms=3, color=col, label=f"N = {n} ({s['members']}), c = "
+                   f"{s['c']:.2f}")
+            a.fill_between(x, f - np.nan_to_num(err), f + np.nan_to_num(err), color=col,
+                           alpha=0.25, lw=0)
+        a.axhline(1.0, color="0.5", lw=0.6, ls=":")
+        a.set(xlabel="x / L from the cut", ylabel="f(x) L (integral 1)", title=title[geo])
+        a.set_ylim(bottom=0)
+        a.legend(fontsize=LEGEND_FONTSIZE)
+    marks = {"plane": "o", "faces": "s"}
+    a = ax[0, 2]
+    for geo in geos:
+        per = summary[geo]["per_N"]
+        ns = sorted(per, key=int)
+        N = np.array([int(n) for n in ns], float)
+        for key, ls, lab in (("c", "-", "c"), ("c_nontrivial", "--", "c, localised out")):
+            y = np.array([per[n][key] for n in ns])
+            e = np.nan_to_num(np.array([per[n][key + "_err"] for n in ns], float))
+            a.errorbar(N, y, e, marker=marks[geo], ls=ls, ms=4, capsize=2,
+                       label=f"{title[geo].split(' (')[0]}: {lab}")
+    a.set_xscale("log")
+    log_ticks_at(a.xaxis, N)
+    a.set(xlabel="N", ylabel="c = min f(x) L", title="lower bound c of f against N")
+    a.set_ylim(0, 1)
+    a.legend(fontsize=LEGEND_FONTSIZE)
+    for k, geo in enumerate(geos):
+        a = ax[1, k]
+        per = summary[geo]["per_N"]
+        ns = sorted(per, key=int)
+        N = np.array([int(n) for n in ns], float)
+        for i, e0 in enumerate(("0.05", "0.1", "0.2")):
+            y = np.array([per[n][f"qpq_{e0}"] for n in ns])
+            e = np.nan_to_num(np.array([per[n][f"qpq_{e0}_err"] for n in ns], float))
+            line = a.errorbar(N, y, e, marker="o", ms=4, capsize=2, label=f"q'/q, e0 = {e0}")
+            b = np.array([per[n][f"bound_mean_e_{e0}"] for n in ns])
+            a.plot(N, np.maximum(b, 0), ls=":", color=line[0].get_color(),
+                   label="bound (mean e - e0)/(1 - e0)" if i == 0 else None)
+            if geo == "plane":
+                bc = np.array([per[n][f"bound_c_{e0}"] for n in ns])
+                a.plot(N, np.maximum(bc, 0), ls="--", color=line[0].get_color(), lw=0.8,
+                       label="bound (c/2 - e0)/(1 - e0)" if i == 0 else None)
+        a.set_xscale("log")
+        log_ticks_at(a.xaxis, N)
+        a.set(xlabel="N", ylabel="q'/q", title=f"extended fraction, {title[geo]}")
+        a.set_ylim(0, 1.3 if geo == "plane" else 0.6)
+        a.legend(fontsize=LEGEND_FONTSIZE, ncol=2, loc="upper center")
+    a = ax[1, 2]
+    for geo in geos:
+        per, fit = summary[geo]["per_N"], summary[geo].get("fit_against_L", {})
+        ns = sorted(per, key=int)
+        L = np.array([per[n]["L"] for n in ns])
+        for key, lab in (("omega_t2", "omega_t^2"), ("mean_modulated_energy", "<g dR|M|g dR>")):
+            y = np.array([per[n][key] for n in ns])
+            e = np.nan_to_num(np.array([per[n][key + "_err"] for n in ns], float))
+            ex = fit.get(key)
+            tag = f", L^({ex['exponent']:.2f} +- {ex['exponent_err']:.2f})" if ex else ""
+            a.errorbar(L, y, e, marker=marks[geo], ms=4, capsize=2,
+                       label=f"{geo}: {lab}{tag}")
+    if geos:  # a guide ~ L^-2 through the first omega_t^2 point
+        per0 = summary[geos[0]]["per_N"]
+        n0 = sorted(per0, key=int)
+        Ls = np.array([per0[n]["L"] for n in n0])
+        a.plot(Ls, per0[n0[0]]["omega_t2"] * (Ls / Ls[0]) ** -2, "k:", lw=0.8, label="~ L^-2")
+    a.set_xscale("log")
+    a.set_yscale("log")
+    if geos:
+        log_ticks_at(a.xaxis, Ls, "{:.1f}")
+    a.set(xlabel="L (diameters)", ylabel="energy (k)", title="trial modes against L")
+    lo, hi = a.get_ylim()
+    a.set_ylim(lo, hi * 8)  # room for the legend above the curves
+    a.legend(fontsize=LEGEND_FONTSIZE, loc="upper right")
+    _save(plt, fig, path)
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("packing", help="an isostatic 2D packing (about 1000 particles)")
