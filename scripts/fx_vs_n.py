@@ -86,6 +86,28 @@ def save(path, obj):
     os.replace(tmp, path)
 
 
+def dphi_for(n, dphi):
+    """The packing's dphi: a number as given, or ``"auto"``: 1e-8 up to N = 4096 and
+    1e-8 (4096 / N)^2 above.  Why: the expected number of excess contacts after rattler removal
+    is Nc - Nc_iso = N' dz_iso / 2 with dz_iso ~ p^(1/2) ~ dphi^(1/2) (Eq. 22), i.e. it grows as
+    N dphi^(1/2): at a fixed dphi an exactly isostatic member gets rarer as N grows (at 1e-8
+    the measured census is 5 of 5 at N = 1024 and about 1 in 3 at 4096; at 16384 Eq. 22 gives
+    ~6 excess contacts), and keeping N dphi^(1/2) at its N = 4096 value keeps the census of
+    4096 (docs/reproduction.md section 12)."""
+    if dphi != "auto":
+        return float(dphi)
+    return 1e-8 * min(1.0, (4096.0 / n) ** 2)
+
+
+def dphi_arg(text):
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--dphi takes a number or 'auto', got {text!r}")
+
+
 def size_dir(root, n, seed):
     """ROOT/N{N} for the default seed N, ROOT/N{N}_s{seed} for another series of the same N."""
     return os.path.join(root, f"N{n}" if seed in (None, n) else f"N{n}_s{seed}")
@@ -96,8 +118,12 @@ def run_size(n, args):
     packdir, cutdir = os.path.join(base, "packings"), os.path.join(base, "cuts")
     os.makedirs(cutdir, exist_ok=True)
     costs_path = os.path.join(base, "costs.json")
-    costs = load(costs_path, {"N": n, "seed": args.seed or n, "dphi": args.dphi, "members": {}})
-    seed = costs["seed"]
+    costs = load(costs_path, {"N": n, "seed": args.seed or n, "dphi": dphi_for(n, args.dphi),
+                              "members": {}})
+    seed, dphi = costs["seed"], costs["dphi"]
+    if dphi != dphi_for(n, args.dphi):
+        raise SystemExit(f"{base} was started at dphi = {dphi:g}, not {dphi_for(n, args.dphi):g}: "
+                         "give that --dphi, or another --seed or --root")
     launch = shlex.split(args.launch) if args.launch else []
     ranks = args.ranks
     iso = 0
@@ -106,7 +132,7 @@ def run_size(n, args):
             break
         rec = costs["members"].setdefault(str(m), {})
         if member_file(packdir, m) is None:
-            argv = parjam_argv() + ["pack", "--dim", "3", "--n", str(n), "--dphi", str(args.dphi),
+            argv = parjam_argv() + ["pack", "--dim", "3", "--n", str(n), "--dphi", str(dphi),
                                     "--phic-method", "extrapolate", "--seed", str(seed),
                                     "--members", str(m + 1), "--no-phic-file", "-q",
                                     "--out", packdir]
@@ -268,7 +294,8 @@ def collect(args):
         n = int(costs["N"])
         packdir = os.path.join(base, "packings")
         for m, rec in sorted(costs["members"].items(), key=lambda kv: int(kv[0])):
-            row = {"N": n, "seed": costs["seed"], "member": int(m), "excess": rec.get("excess"),
+            row = {"N": n, "seed": costs["seed"], "dphi": costs.get("dphi"), "member": int(m),
+                   "excess": rec.get("excess"),
                    "pack": rec.get("pack"), "cuts": {}}
             path = member_file(packdir, int(m))
             row["L"] = box_edge(path) if path else None
@@ -330,6 +357,7 @@ def collect(args):
         packs[str(n)] = {
             "tried": len(rows), "isostatic": sum(r["excess"] == 0 for r in rows),
             "excess": [r["excess"] for r in rows],
+            "dphi": [r["dphi"] for r in rows],
             **cost_summary([r["pack"] for r in rows if r.get("pack")], "pack")}
     out = {"format": "parjam-fx-vs-n", "root": os.path.abspath(args.root),
            "geometries": {k: {"args": v[0], "e0": v[1]} for k, v in GEOMETRIES.items()},
@@ -349,13 +377,16 @@ def pm(v, e, fmt="{:.3f}"):
 def tables(args):
     """The markdown tables of docs/reproduction.md section 12, from the results JSON."""
     res = load(args.results, None)
-    lines = ["| N | packed (checked) | isostatic | Nc - Nc_iso | pack CPU s / wall s per member "
-             "| pack peak MB |", "|---|---|---|---|---|---|"]
+    lines = ["| N | packed (checked) | isostatic | Nc - Nc_iso (dphi) | pack CPU s / wall s per "
+             "member | pack peak MB |", "|---|---|---|---|---|---|"]
     for n, p in sorted(res["packs"].items(), key=lambda kv: int(kv[0])):
         cpu, wall, peak = (p.get(f"pack_{k}") for k in ("cpu_seconds", "seconds", "peak_mb"))
-        lines.append(f"| {n} | {p['tried']} | {p['isostatic']} | "
-                     + ", ".join(f"{x:+d}" for x in p["excess"])
-                     + f" | {fmt_or_dash(cpu, '{:.1f}')} / {fmt_or_dash(wall, '{:.0f}')} | "
+        dphis = p.get("dphi") or [None] * len(p["excess"])
+        census = "; ".join(", ".join(f"{x:+d}" for x, y in zip(p["excess"], dphis) if y == dp)
+                           + ("" if dp is None else f" ({dp:g})")
+                           for dp in sorted(set(dphis), key=lambda v: -(v or 0)))
+        lines.append(f"| {n} | {p['tried']} | {p['isostatic']} | {census}"
+                     f" | {fmt_or_dash(cpu, '{:.1f}')} / {fmt_or_dash(wall, '{:.0f}')} | "
                      f"{fmt_or_dash(peak, '{:.0f}')} |")
     print("\n".join(lines) + "\n")
     for geo, g in res["summary"].items():
@@ -435,7 +466,8 @@ def main(argv=None):
     r.add_argument("--n", type=int, nargs="+", required=True)
     r.add_argument("--members", type=int, default=5, help="isostatic members per N (5)")
     r.add_argument("--max-tries", type=int, default=12, help="members packed at most (12)")
-    r.add_argument("--dphi", type=float, default=1e-8)
+    r.add_argument("--dphi", type=dphi_arg, default="auto",
+                   help="a number, or auto: 1e-8 up to N = 4096, 1e-8 (4096/N)^2 above (auto)")
     r.add_argument("--seed", type=int, help="ensemble seed (default: N)")
     r.add_argument("--bins", type=int, default=10)
     r.add_argument("--ranks", type=int, default=1, help="MPI ranks per command (1)")
@@ -460,7 +492,8 @@ def main(argv=None):
     elif args.cmd == "adopt":
         adopt(args)
     elif args.cmd == "run":
-        if args.members < 1 or args.max_tries < args.members or args.dphi <= 0:
+        if args.members < 1 or args.max_tries < args.members or (
+                args.dphi != "auto" and args.dphi <= 0):
             p.error("need 1 <= --members <= --max-tries and --dphi > 0")
         for n in args.n:
             run_size(n, args)

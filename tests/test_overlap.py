@@ -164,6 +164,7 @@ def test_fx_vs_n_collects_cut_files_and_the_figure_draws_them(shared_tmp):
     mpi.Barrier()
     res = json.load(open(out))
     assert res["packs"]["256"]["isostatic"] == 1
+    assert res["packs"]["256"]["dphi"] == [1e-8]
     for geo in fx_vs_n.GEOMETRIES:
         per = res["summary"][geo]["per_N"]
         assert sorted(per) == ["256", "512"]
@@ -176,3 +177,15 @@ def test_fx_vs_n_collects_cut_files_and_the_figure_draws_them(shared_tmp):
     png = os.path.join(root, "fx.png")
     assert cli.main(["plot", out, "--out", png, "-q"]) == 0
     assert os.path.getsize(png) > 10_000
+
+
+def test_fx_vs_n_auto_dphi_keeps_the_expected_excess_of_n4096():
+    """``--dphi auto``: 1e-8 up to N = 4096, then N dphi^(1/2) (the expected Nc - Nc_iso by
+    Eq. 22) held at its N = 4096 value; a number is taken as given."""
+    sys.path.insert(0, os.path.join(ROOT, "scripts"))
+    import fx_vs_n
+
+    assert fx_vs_n.dphi_for(1024, "auto") == fx_vs_n.dphi_for(4096, "auto") == 1e-8
+    for n in (16384, 65536):
+        assert n * fx_vs_n.dphi_for(n, "auto") ** 0.5 == pytest.approx(4096 * 1e-4, rel=1e-12)
+    assert fx_vs_n.dphi_for(65536, 3e-9) == 3e-9
