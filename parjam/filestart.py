@@ -14,7 +14,7 @@ reductions:
   two reductions;
 - coinciding centres, which read_packing finds with a k-d tree of all N, are looked for on the
   slabs of parjam.domain within DUPLICATE_TOL x the smallest diameter (a halo that thin holds
-  almost nothing).
+  almost nothing); on one rank, which holds all rows anyway, by read_packing's own k-d tree.
 
 The Jammer then starts from ``start_rows``: this rank's rows as statefile.StateRows, the same
 rows, metadata and phi that ``Jammer(comm, pack)`` took from the whole file (the old path),
@@ -25,6 +25,7 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from parjam import exactsum, io, rowio
 from parjam.active import max_op, min_op
@@ -58,16 +59,19 @@ def duplicate_problem(comm, rows):
     many there are, or None (collective)."""
     dmin = comm.allreduce(float(rows.diam.min()) if len(rows.diam) else np.inf, op=min_op())
     cut = io.DUPLICATE_TOL * dmin
-    dom = SlabDomain.balanced(comm, rows.L, rows.pos)
-    x, ids, _ = dom.migrate(rows.pos, rows.ids)
-    halo = dom.halo(x, ids, cut)
-    found = dom.neighbour_pairs(x, halo, cut)
-    gid = np.concatenate([ids, halo.ids])
-    i, j = gid[found[:, 0]], gid[found[:, 1]]
-    # an owned-ghost pair is found by both ranks: counted where the owned end is the smaller
-    ghost = found[:, 1] >= len(x)
-    keep = ~ghost | (i < j)
-    lo, hi = np.minimum(i, j)[keep], np.maximum(i, j)[keep]
+    if comm.Get_size() == 1:  # read_packing's own search (no slab copies of the positions)
+        found = cKDTree(rows.pos, boxsize=rows.L).query_pairs(cut, output_type="ndarray")
+        lo, hi = found.min(axis=1), found.max(axis=1)
+    else:
+        dom = SlabDomain.balanced(comm, rows.L, rows.pos)
+        x, ids, _ = dom.migrate(rows.pos, rows.ids)
+        halo = dom.halo(x, ids, cut)
+        found = dom.neighbour_pairs(x, halo, cut)
+        gid = np.concatenate([ids, halo.ids])
+        i, j = gid[found[:, 0]], gid[found[:, 1]]
+        # an owned-ghost pair is found by both ranks: counted where the owned end is the smaller
+        keep = (found[:, 1] < len(x)) | (i < j)
+        lo, hi = np.minimum(i, j)[keep], np.maximum(i, j)[keep]
     count = comm.allreduce(int(len(lo)))
     if count == 0:
         return None
