@@ -7,8 +7,7 @@ import time
 import h5py
 import numpy as np
 
-from parjam import checkpoint, faults, io, manifest, order, outputs, statefile
-from parjam.importer import from_file
+from parjam import checkpoint, faults, filestart, io, manifest, order, outputs, statefile
 from parjam.network import analyze
 from parjam.errors import UnjammedError
 from parjam.packing import RESOLVED_FRACTION, JamSettings, Jammer, LadderUnjammed
@@ -25,8 +24,8 @@ def member_states(args, member, comm, progress, checkpoint=None):
     """Every requested state of one member, in the order they are computed."""
     rng = member_rng(args.seed, member)
     start_phi = args.phi if args.phi is not None else args.phi_start
-    if getattr(args, "start", None):  # pack --from FILE
-        start = from_file(args.start, args.alpha)
+    if getattr(args, "start", None):  # pack --from FILE: this rank's block rows of the file
+        start = filestart.start_rows(comm, args.start, args.alpha, args.phi_start)
     else:  # this rank's block rows of the random start: no rank makes all N particles
         start = start_rows(comm, args.dim, args.n, start_phi, args.alpha, args.dispersity,
                            args.ratio, rng)

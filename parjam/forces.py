@@ -4,9 +4,9 @@
 FIRE does not run here: parjam.fire hands the positions to a ``parjam.engine.SlabEngine``
 (``start_engine``), which spreads the particles over the slabs of the spatial decomposition and
 keeps no array of length N on any rank; at the end (``stop_engine``) they come back to the Vec.
-Nothing on the packing path gathers the whole configuration: files and checkpoints go by
-rows (parjam.statefile, parjam.checkpointio).  ``gather`` (all N positions on every rank,
-lazily) stays for tests and scripts, which drop the buffer after use.
+Nothing here gathers the whole configuration: files and checkpoints go by rows
+(parjam.statefile, parjam.checkpointio), and the gathers tests and scripts want (all N positions
+or engine values on every rank) are parjam.testing.gather's, outside the packing path.
 
 For Newton and single evaluations the Verlet list holds the pairs that touch a rank's block
 rows: on one rank from linked cells in compiled code (kernels.cell_pairs; in a box of fewer
@@ -56,7 +56,6 @@ class ForceField:
         self.skin = 0.2 * self.dmin if skin is None else skin
         self.diam_rows = np.array(diam)  # the diameters of the block rows
         self.x = PETSc.Vec().createMPI(((self.hi - self.lo) * d, self.n * d), bsize=d, comm=comm)
-        self.scatter = self.xall = None  # the gather to all ranks, made when asked (gather)
         self.engine = None  # the SlabEngine while FIRE runs (start_engine)
         self.set_box(L)
         self.n_force_calls = 0
@@ -94,19 +93,6 @@ class ForceField:
         """Fold the owned positions back into [0, L)."""
         arr = self.x.array
         arr[:] = wrap(arr, self.L)
-
-    def gather(self, vec=None):
-        """Full (N, d) positions (or values of ``vec``) on every rank: the lazy gather of what
-        needs the whole configuration.  While FIRE runs on the engine, the positions are first
-        fetched from it."""
-        PETSc = env.petsc()
-        if vec is None and self.engine is not None:
-            self.sync_engine()
-        if self.scatter is None:
-            self.scatter, self.xall = PETSc.Scatter.toAll(self.x)
-        self.scatter.scatter(self.x if vec is None else vec, self.xall,
-                             PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
-        return self.xall.array_r.reshape(self.n, self.d)
 
     def local(self, vec):
         return vec.array.reshape(-1, self.d)
@@ -254,8 +240,7 @@ class ForceField:
     # --- FIRE on the spatial decomposition (parjam.fire) ---------------------------------------
     def start_engine(self, v_block=None):
         """A SlabEngine holding the current positions (and ``v_block``, velocities of this rank's
-        block rows) on the slabs (collective).  The gather buffer goes: FIRE holds no N."""
-        self.drop_gather()
+        block rows) on the slabs (collective)."""
         x = np.array(self.x.array_r).reshape(-1, self.d)
         self.engine = SlabEngine(self.comm, self.L, self.alpha, self.eps, self.skin, x,
                                  np.arange(self.lo, self.hi, dtype=np.int64),
@@ -271,27 +256,11 @@ class ForceField:
         """The engine's positions into the Vec (collective)."""
         self.x.array[:] = self.block_rows(self.engine.xu).ravel()
 
-    def gather_engine(self, values):
-        """Full (N, ...) copy of per-particle values of the engine's rows (e.g. velocities) on
-        every rank (collective)."""
-        tmp = self.vec()
-        tmp.array[:] = self.block_rows(values).ravel()
-        out = np.array(self.gather(tmp))
-        tmp.destroy()
-        return out
-
     def stop_engine(self):
         """The engine's positions back into the Vec, and the engine dropped (collective)."""
         self.sync_engine()
         self.n_rebuilds += self.engine.n_rebuilds
         self.engine = None
-
-    def drop_gather(self):
-        """Free the gather buffer (an (N, d) Vec on every rank) until the next gather."""
-        if self.scatter is not None:
-            self.scatter.destroy()
-            self.xall.destroy()
-            self.scatter = self.xall = None
 
     def max_norm(self, f):
         """max_i |F_i| over all particles (Euclidean norm per particle)."""
@@ -336,7 +305,6 @@ class ForceField:
             self._hess.destroy()
         if self.newton_ksp is not None:
             self.newton_ksp.destroy()
-        self.drop_gather()
         if self.halo_scatter is not None:
             self.halo_scatter.destroy()
             self.halo_x.destroy()

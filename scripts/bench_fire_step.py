@@ -43,6 +43,7 @@ def measure(n, steps, repeat, warm, seed=1, warm_ftol=0.0):
     from parjam.fire import FireParams, fire, fire_unfused
     from parjam.forces import ForceField
     from parjam.packing import random_packing
+    from parjam.testing.gather import gather
 
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
@@ -51,7 +52,7 @@ def measure(n, steps, repeat, warm, seed=1, warm_ftol=0.0):
     ff = ForceField(comm, pack.diam, pack.L, 3, 2.0)
     ff.set_positions(pack.pos)
     w = fire(ff, warm_ftol, params=FireParams(max_steps=warm))
-    start = np.array(ff.gather())
+    start = np.array(gather(ff))
     params = FireParams(max_steps=steps)
     times = {"old": [], "new": [], "kernel": []}
     cpu = {"old": [], "new": [], "kernel": []}

@@ -53,7 +53,12 @@ del start
 secs = time.perf_counter() - t0
 after = mb()
 got = comm.tompi4py().gather((before, after, secs), root=0)
-pos = jam.ff.gather()  # after the peak is read: the check of old == new
+try:  # after the peak is read: the check of old == new
+    from parjam.testing.gather import gather
+except ImportError:  # main before the gathers left ForceField
+    pos = jam.ff.gather()
+else:
+    pos = gather(jam.ff)
 if comm.getRank() == 0:
     print("RESULT", json.dumps({"before": max(g[0] for g in got),
                                 "after": max(g[1] for g in got),

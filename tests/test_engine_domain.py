@@ -15,6 +15,7 @@ from parjam.fire import FireParams, fire
 from parjam.forces import ForceField
 from parjam.packing import random_packing
 from parjam.system import neighbour_pairs
+from parjam.testing.gather import gather
 
 from conftest import run_on_ranks
 
@@ -66,7 +67,7 @@ def quenched(d, poly, n, phi, steps, seed=3):
         ff = ForceField(_petsc_self(), pack.diam, pack.L, d, 2.0)
         ff.set_positions(pack.pos)
         fire(ff, 1e-12, params=FireParams(max_steps=steps))
-        pack.pos = np.array(ff.gather())
+        pack.pos = np.array(gather(ff))
         ff.destroy()
     return pack
 
@@ -157,7 +158,7 @@ def test_fire_on_all_ranks_follows_fire_on_one(world, d, poly):
         ff = ForceField(comm, pack.diam, pack.L, d, 2.0)
         ff.set_positions(pack.pos)
         res = fire(ff, 0.0, params=FireParams(max_steps=250))
-        out.append((res, np.array(ff.gather()), ff.n_rebuilds))
+        out.append((res, np.array(gather(ff)), ff.n_rebuilds))
         ff.destroy()
     (r1, x1, n1), (rp, xp, nrp) = out
     assert r1.fire_steps == rp.fire_steps == 250 and n1 > 2

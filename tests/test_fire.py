@@ -9,13 +9,14 @@ from parjam.fire import FireParams, control, fire, fire_unfused
 from parjam.forces import ForceField
 from parjam.packing import random_packing
 from parjam.system import neighbour_pairs
+from parjam.testing.gather import gather, gather_engine
 
 
 def _run(comm, pack, fn, params):
     ff = ForceField(comm, pack.diam, pack.L, pack.d, pack.alpha)
     ff.set_positions(pack.pos)
     res = fn(ff, 0.0, params=params)
-    pos = np.array(ff.gather())
+    pos = np.array(gather(ff))
     rebuilds = ff.n_rebuilds  # collective: the same on every rank
     ff.destroy()
     return res, pos, rebuilds
@@ -81,11 +82,11 @@ def test_fused_step_is_one_semi_implicit_euler_step_with_mixing(world):
             vv[:] = 0.0
         vv = mix_f * f0 + mix_v * (vv + dt * f0)
         x += dt * vv
-        np.testing.assert_allclose(ff.gather_engine(eng.v), vv, rtol=0, atol=1e-15)
-        np.testing.assert_allclose(ff.gather(), x, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(gather_engine(ff, eng.v), vv, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(gather(ff), x, rtol=0, atol=1e-13)
         ref.set_positions(x)
         e1 = ref.evaluate(fref)
-        np.testing.assert_allclose(ff.gather_engine(eng.f), ref.local(fref), rtol=0,
+        np.testing.assert_allclose(gather_engine(ff, eng.f), ref.local(fref), rtol=0,
                                    atol=1e-13 * np.abs(f0).max())
         assert s.energy == pytest.approx(e1, rel=1e-12)
         assert s.disp == pytest.approx(np.sqrt(((x - pack.pos) ** 2).sum(1)).max(), rel=1e-9)
@@ -190,9 +191,9 @@ def test_fused_step_after_a_forced_rebuild(world):
     eng.rebuild(rebalance=True)
     s = eng.step(0.05, False, 0.9, 0.0, s)
     assert eng.n_rebuilds == before + 1
-    ff.gather()  # the engine's positions into ff.x
+    ff.sync_engine()  # the engine's positions into ff.x
     e = ff.evaluate(g)
-    assert np.array_equal(ff.gather_engine(eng.f), ff.gather(g))
+    assert np.array_equal(gather_engine(ff, eng.f), gather(ff, g))
     assert s.energy == pytest.approx(e, rel=1e-14)
     ff.stop_engine()
     g.destroy()
@@ -216,16 +217,16 @@ def test_one_particle_moving_past_half_the_skin_rebuilds_everywhere(world, move,
     eng = ff.start_engine(v)
     s = eng.start()
     before = eng.n_rebuilds
-    x0 = np.array(ff.gather())
+    x0 = np.array(gather(ff))
     # no force term (f zeroed, mix_f = 0): v' = v, x' = x + dt v
     eng.f[:] = 0.0
     s = eng.step(dt, False, 1.0, 0.0, s)
-    x1 = np.array(ff.gather())
+    x1 = np.array(gather(ff))
     assert np.abs(x1[0] - x0[0] - [move * ff.skin, 0, 0]).max() < 1e-12
     assert np.array_equal(x1[1:], x0[1:])
     assert (eng.n_rebuilds == before + 1) == rebuilt
     e = ff.evaluate(g)
-    assert np.array_equal(ff.gather_engine(eng.f), ff.gather(g))
+    assert np.array_equal(gather_engine(ff, eng.f), gather(ff, g))
     assert s.energy == pytest.approx(e, rel=1e-14)
     ff.stop_engine()
     g.destroy()

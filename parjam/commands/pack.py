@@ -145,17 +145,19 @@ def fits_machine(args, world):
 
 
 def start_from_file(args):
-    """--from FILE: d, N, phi_start and the dispersity label come from the file (read again,
-    with --alpha, by parjam.importer.from_file in each member's group)."""
-    from parjam.io import read_packing, sha256
+    """--from FILE: d, N, phi_start and the dispersity label come from the file, read by rows
+    on every rank of the world (parjam.filestart.describe: no rank reads all N particles); each
+    member's group reads its own rows again when it starts (filestart.start_rows)."""
+    from parjam import env
+    from parjam.filestart import describe
+    from parjam.io import sha256
 
     if args.members != 1:
         raise ParjamError(f"--from starts one configuration: --members must be 1, got "
                           f"{args.members}")
-    pack = read_packing(args.start)
-    args.dim, args.n, args.phi_start = pack.d, pack.n, pack.phi
-    args.dispersity = {1: "mono", 2: "bi"}.get(len(set(pack.diam.tolist())), "poly")
-    args.ratio = float(pack.diam.max() / pack.diam.min())
+    about = describe(env.petsc().COMM_WORLD, args.start)
+    args.dim, args.n, args.phi_start = about.d, about.n, about.phi
+    args.dispersity, args.ratio = about.dispersity, about.ratio
     args.start_sha256 = sha256(args.start)
 
 

@@ -57,6 +57,7 @@ def main():
 
     from parjam import env, io, spectrum
     from parjam.forces import ForceField
+    from parjam.testing.gather import gather
 
     env.init(petsc_args)
     PETSc = env.petsc()
@@ -71,7 +72,7 @@ def main():
 
     def neighbours():
         ff.pairs = None
-        ff._update_pairs(ff.gather())
+        ff._update_pairs(gather(ff))
 
     rec["neighbours_s"], _ = timed(mpi, "neighbours", neighbours)
     rec["force_s"], _ = timed(mpi, "force", lambda: ff.evaluate(f), args.forces)
