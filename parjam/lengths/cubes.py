@@ -185,10 +185,11 @@ def count_cube(pos, internal, n_leaving, L, x0, ell, *, alpha, eps, scale, comm_
     return out
 
 
-def null_count(comm_self, M, scale):
-    """Null-space dimension of a cube's PSD matrix M, counted by inertia (softmodes.count_below,
-    under this command's own prefix) at both GAP_THRESHOLDS; -1 when the counts differ (no clear
-    gap: the soft count is unknown)."""
-    counts = {softmodes.count_below(comm_self, M, t * scale, prefix=INERTIA_PREFIX)
+def null_count(comm, M, scale, prefix=INERTIA_PREFIX):
+    """Null-space dimension of a cube's PSD matrix M (on one rank, or on the whole communicator
+    for parjam.lengths.whole), counted by inertia (softmodes.count_below, under this command's
+    own ``prefix``) at both GAP_THRESHOLDS; -1 when the counts differ (no clear gap: the soft
+    count is unknown)."""
+    counts = {softmodes.count_below(comm, M, t * scale, prefix=prefix)
               for t in GAP_THRESHOLDS}
     return counts.pop() if len(counts) == 1 else -1
