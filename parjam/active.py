@@ -18,6 +18,11 @@ Built on parjam.domain's slabs (issue 19):
    block rows [lo, hi) of every operator; the ghosts' numbers come by one pull.  This numbering
    is *not* the serial one (sorted by particle id) unless P = 1; ``ids`` maps it back.
 
+The same machinery serves sub-networks (the l* cubes of parjam.lengths.whole): ``prune`` is the
+iterative removal at any threshold from any starting set, ``components`` the connected pieces by
+min-label propagation, ``number_halo`` the ghost plan of the active numbering (the half-edges'
+other ends), on which ``renumber`` re-indexes the survivors.
+
 The owned particles' wrapped positions stay on the network (``pos``, ``active_pos`` for the
 active rows) for the analyses that need a row's position (softmodes' cuts and f(x)).
 

@@ -32,10 +32,10 @@ def values(count):
     ("soft_d3_N512_m0.h5", (0.5, 1.0), 1)])
 def test_whole_count_is_the_serial_count(world, name, fracs, samples):
     """Every cube forced onto the whole communicator (``whole_above=0``) and with the default
-    threshold N'/P (the extended modes left out there) gives exactly the counts of the one-rank path (members gathered, COMM_SELF):
-    the members, cut contacts, pruned particles and their trivial modes, pieces, the MUMPS null
-    space and the extended soft modes (the 3D cube of edge L: 1350 degrees of freedom, sorted
-    by the dense step from the gathered core)."""
+    threshold N'/P (the extended modes left out there) gives exactly the counts of the one-rank
+    path (members gathered, COMM_SELF): the members, cut contacts, pruned particles and their
+    trivial modes, pieces, the MUMPS null space and the extended soft modes (the 3D cube of
+    edge L: 1350 degrees of freedom, sorted by the dense step from the gathered core)."""
     pack = io.read_packing(os.path.join(DATA, name))
     ells = np.array(fracs) * pack.L
     ref = lengths.lstar(SELF, pack, ells, samples=samples, seed=7, whole_above=np.inf)

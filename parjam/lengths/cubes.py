@@ -1,5 +1,7 @@
 """One cut cube of the l* analysis (Wyart, Silbert, Nagel & Witten, PRE 72, 051306 (2005),
-Section III and the Appendix): its soft modes, counted on a single-rank communicator.
+Section III and the Appendix): its soft modes, counted on a single-rank communicator (a cube of
+more than N'/P members is counted on the whole communicator by parjam.lengths.whole, with the
+same steps and these functions).
 
 Cut every contact crossing the boundary of a cube of edge l inside the packing and keep the n
 non-rattlers whose centres lie in it with their Nc_in internal contacts.  Floppy modes: at least

@@ -14,16 +14,19 @@ measured l* is the edge at which the mean cut-plane count of the real cubes chan
 of any size, ``lstar_extended`` is the edge above which no cube keeps an *extended* soft mode
 (e > e0, default 0.4 x 2^-d, 40 % of a uniform mode; parjam.lengths.cubes).
 
-Distribution.  The cube corners are drawn from ``seed`` identically on every rank; cube t is
-counted on rank t mod P (on COMM_SELF).  The cubes go in rounds of P: in each round every rank
-finds which of its owned non-rattlers (parjam.lengths.sites) lie in each cube of the round and
-sends them, and the half-edges leaving them (parjam.active), to the cube's rank with one
-``parjam.domain.send_rows`` each.  A rank so holds its own N/P particles plus the members of one
-cube at a time, never all N positions or all contacts; the counts are identical to a count on
-one rank (members in particle-id order, contacts in (i, j) order).  A cube of edge l holds
-about (l / L)^d N' particles on its rank: cubes of a few l* are small, but an edge of the order
-of L (the default edges reach L) brings a large part of the packing to one rank; for large
-packings give edges in units of l* (``--edges``).
+Distribution.  The cube corners are drawn from ``seed`` identically on every rank, and the
+members of every cube are counted first (one allreduce of a count per cube).  A cube of at most
+N'/P members (``whole_above``) is counted on one rank, cube after cube in rounds of P: in each
+round every rank finds which of its owned non-rattlers (parjam.lengths.sites) lie in each cube
+of the round and sends them, and the half-edges leaving them (parjam.active), to the cube's rank
+with one ``parjam.domain.send_rows`` each; the rank counts it on COMM_SELF
+(parjam.lengths.cubes).  A larger cube, which would at least double its rank's share of the
+packing (the default edges reach L: the whole packing), is counted by all the ranks together
+with its members staying where they are (parjam.lengths.whole: distributed pruning and pieces,
+the SBAIJ matrix of the survivors and MUMPS inertia on the whole communicator).  A rank so holds
+its own N'/P particles plus at most N'/P members of a cube, never all N positions or all
+contacts; the counts are identical to a count on one rank (members in particle-id order,
+contacts in (i, j) order, each contact taken from its end with the smaller id).
 """
 
 from dataclasses import dataclass
