@@ -87,37 +87,19 @@ def count_whole(comm, sites, plan, x0, ell, *, scale, e0=None, max_dof=EXTENDED_
 
 def count(comm, sites, plan, x0, ell, scale, e0, max_dof):
     mpi = as_mpi(comm)
-    net, L, g = sites.net, sites.L, plan
-    d = net.d
-    c = net.contacts
-    member = cube_members(g.pos, L, x0, ell)
-    mine = member[g.i]  # half-edges leaving an owned member
-    inside = mine & member[g.j]
-    k = np.flatnonzero(inside)
-    canon = g.ids[g.i[k]] < g.ids[g.j[k]]  # the end the serial count takes the contact from
-    start = np.where(canon[:, None], g.pos[g.i[k]], g.pos[g.j[k]])
-    rij = np.where(canon[:, None], c.rij[k], -c.rij[k])
-    cut = face_cuts(start, Contacts(np.arange(len(k)), np.arange(len(k)), rij, c.r[k],
-                                    c.sigma[k]), L, x0, ell)
-    kept = k[~cut]
-    n, leaving, n_cut, n_kept = sum_int(mpi, member[:g.n_own].sum(), (mine & ~inside).sum(),
-                                        cut.sum(), len(kept))
-    q, nc_in = leaving + n_cut // 2, n_kept // 2
-    edges = Contacts(g.i[kept], g.j[kept], c.rij[kept], c.r[kept], c.sigma[kept])
-    alive, deficit = active.prune(mpi, g.halo, g.n_own, edges, d, alive=member[:g.n_own])
-    flag = np.concatenate([alive, g.halo.pull(alive)])
-    live = flag[edges.i] & flag[edges.j]
-    core = edges.subset(live)
+    net, d = sites.net, sites.net.d
+    (n, q, nc_in), edges = kept_edges(mpi, sites, plan, x0, ell)
+    alive, deficit = active.prune(mpi, plan.halo, plan.n_own, edges, d,
+                                  alive=cube_members(sites.pos, sites.L, x0, ell))
+    flag = np.concatenate([alive, plan.halo.pull(alive)])
+    core = edges.subset(flag[edges.i] & flag[edges.j])
+    del edges, flag
     trivial, n_core, nc_core = sum_int(mpi, deficit, alive.sum(), len(core.i))
     nc_core //= 2
     if n_core == 0:
         return CubeCount(ell, n, q, nc_in, 0, 0, trivial, 0, 0, d)
-    _, pieces = active.components(mpi, g.halo, g.n_own, core, alive, net.lo)
-    number, lo, hi = active.renumber(mpi, g.halo, alive)
-    blocks = hessian.contact_blocks(core.rij, core.r, core.sigma, net.alpha, net.eps,
-                                    "relaxed")
-    M = hessian.assemble(comm, n_core, d, number[core.i], number[core.j], blocks,
-                         rows=(lo, hi), fmt="sbaij")
+    _, pieces = active.components(mpi, plan.halo, plan.n_own, core, alive, net.lo)
+    M = survivor_matrix(comm, plan, core, alive, net, n_core)
     try:
         null = null_count(comm, M, scale, prefix=WHOLE_PREFIX)
     finally:
@@ -127,8 +109,39 @@ def count(comm, sites, plan, x0, ell, scale, e0, max_dof):
         if out.soft == 0:
             out.extended = 0
         elif d * n_core <= max_dof:
-            out.extended = extended_on_root(mpi, g, core, alive, x0, ell, net, e0)
+            out.extended = extended_on_root(mpi, plan, core, alive, x0, ell, net, e0)
     return out
+
+
+def kept_edges(comm, sites, plan, x0, ell):
+    """(n, q, Nc_in) of the cube and this rank's kept internal half-edges (rows of the plan):
+    members on the owned rows and ghosts alike, each contact's face crossing decided from its
+    end with the smaller particle id (module doc)."""
+    g, c, L = plan, sites.net.contacts, sites.L
+    member = cube_members(g.pos, L, x0, ell)
+    mine = member[g.i]  # half-edges leaving an owned member
+    inside = mine & member[g.j]
+    k = np.flatnonzero(inside)
+    canon = g.ids[g.i[k]] < g.ids[g.j[k]]  # the end the serial count takes the contact from
+    start = np.where(canon[:, None], g.pos[g.i[k]], g.pos[g.j[k]])
+    rij = np.where(canon[:, None], c.rij[k], -c.rij[k])
+    at = np.arange(len(k))
+    cut = face_cuts(start, Contacts(at, at, rij, c.r[k], c.sigma[k]), L, x0, ell)
+    kept = k[~cut]
+    n, leaving, n_cut, n_kept = sum_int(comm, member[:g.n_own].sum(), (mine & ~inside).sum(),
+                                        cut.sum(), len(kept))
+    edges = Contacts(g.i[kept], g.j[kept], c.rij[kept], c.r[kept], c.sigma[kept])
+    return (n, leaving + n_cut // 2, n_kept // 2), edges
+
+
+def survivor_matrix(comm, plan, core, alive, net, n_core):
+    """The relaxed-spring matrix of the survivors (SBAIJ, block rows of the parallel re-index),
+    from the core half-edges; its temporaries freed before the factorisation."""
+    number, lo, hi = active.renumber(as_mpi(comm), plan.halo, alive)
+    blocks = hessian.contact_blocks(core.rij, core.r, core.sigma, net.alpha, net.eps,
+                                    "relaxed")
+    return hessian.assemble(comm, n_core, net.d, number[core.i], number[core.j], blocks,
+                            rows=(lo, hi), fmt="sbaij")
 
 
 def extended_on_root(comm, g, core, alive, x0, ell, net, e0):
