@@ -23,6 +23,10 @@ Each ``--tiles P:SMALL:K`` is one point: the packing SMALL tiled K^d times
   more than N'/P members on all the ranks together (parjam.lengths.whole, issue 19 session 14).
   Not in the default ``--parts``: ``--parts cubes``.
 
+``--old`` must import main's code: an executable of main's own venv, or a wrapper running
+``python -P -m parjam`` with main's tree on PYTHONPATH (without ``-P``, ``-m`` puts the current
+directory, this tree, ahead of PYTHONPATH and both columns measure the new code).
+
 Every rank runs under /usr/bin/time (peak resident set size of that rank); the table gives the
 largest and the mean over the ranks and the ratio NEW / OLD of the largest.  ``--parts`` and
 ``--max-ranks`` (per part) keep the run short.
