@@ -18,6 +18,11 @@ Built on parjam.domain's slabs (issue 19):
    block rows [lo, hi) of every operator; the ghosts' numbers come by one pull.  This numbering
    is *not* the serial one (sorted by particle id) unless P = 1; ``ids`` maps it back.
 
+The same machinery serves sub-networks (the l* cubes of parjam.lengths.whole): ``prune`` is the
+iterative removal at any threshold from any starting set, ``components`` the connected pieces by
+min-label propagation, ``number_halo`` the ghost plan of the active numbering (the half-edges'
+other ends), on which ``renumber`` re-indexes the survivors.
+
 The owned particles' wrapped positions stay on the network (``pos``, ``active_pos`` for the
 active rows) for the analyses that need a row's position (softmodes' cuts and f(x)).
 
@@ -31,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from parjam import hessian, potential
-from parjam.domain import SlabDomain, as_mpi
+from parjam.domain import Halo, SlabDomain, as_mpi, send_rows
 from parjam.network import Contacts, NetworkNumbers
 from parjam.system import pair_separation, sphere_volume
 
@@ -126,15 +131,85 @@ def half_edges(dom, x, diam, ids, cutoff):
 def remove_rattlers(comm, halo, n_own, d, edges):
     """Owned rattler mask: fewer than d + 1 live contacts, removed iteratively (each sweep one
     pull of the ghosts' flags and one allreduce)."""
-    alive = np.ones(n_own, dtype=bool)
+    return ~prune(comm, halo, n_own, edges, d + 1)[0]
+
+
+def prune(comm, halo, n_own, edges, min_contacts, alive=None):
+    """Iteratively remove the owned rows with fewer than ``min_contacts`` live contacts among
+    ``edges`` (half-edges, i owned, rows of [owned; ghosts of ``halo``]), starting from the owned
+    ``alive`` mask (all by default; the ghosts' flags come from their owners).  Every sweep
+    removes all the rows below the threshold at once (one pull of the ghosts' flags, one
+    allreduce of the removed count), as ``network.find_rattlers`` and
+    ``lengths.cubes.prune_underconstrained`` do serially.  Returns (alive, this rank's
+    sum of min_contacts - z_i over the rows it removed, z_i their live contacts then)."""
+    alive = np.ones(n_own, dtype=bool) if alive is None else np.array(alive, dtype=bool)
+    deficit = 0
     while True:
         flag = np.concatenate([alive, halo.pull(alive)])
         live = flag[edges.i] & flag[edges.j]
         deg = np.bincount(edges.i[live], minlength=n_own)
-        new = alive & (deg < d + 1)
+        new = alive & (deg < min_contacts)
         if comm.allreduce(int(new.sum())) == 0:
-            return ~alive
+            return alive, deficit
+        deficit += int((min_contacts - deg[new]).sum())
         alive &= ~new
+
+
+def components(comm, halo, n_own, edges, alive, first):
+    """Connected pieces of the live rows (owned ``alive`` mask; ``edges`` half-edges, i owned,
+    rows of [owned; ghosts of ``halo``], both ends alive) by min-label propagation: every row
+    starts with its global number (``first`` + owned row), each sweep pulls the ghosts' labels
+    and gives every piece of this rank's graph of owned and ghost rows (scipy) the smallest
+    label in it; one allreduce of the changed rows per sweep stops the loop (sweeps ~ the
+    number of times a piece crosses between ranks, not its diameter).  Returns (labels of the
+    owned rows, the smallest number of each row's piece; -1 for dead rows, number of pieces)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    big = np.iinfo(np.int64).max
+    label = np.where(alive, first + np.arange(n_own, dtype=np.int64), big)
+    n_rows = n_own + halo.n
+    graph = sp.coo_matrix((np.ones(len(edges.i)), (edges.i, edges.j)), shape=(n_rows, n_rows))
+    _, piece = connected_components(graph, directed=False)
+    while True:
+        rows = np.concatenate([label, halo.pull(label)])
+        low = np.full(piece.max() + 1 if n_rows else 0, big, dtype=np.int64)
+        np.minimum.at(low, piece, rows)
+        new = np.where(alive, low[piece[:n_own]], big)
+        changed = int(np.sum(new != label))
+        label = new
+        if comm.allreduce(changed) == 0:
+            break
+    roots = int(np.sum(alive & (label == first + np.arange(n_own))))
+    return np.where(alive, label, -1), comm.allreduce(roots)
+
+
+def number_halo(comm, lo, hi, wanted):
+    """The ghost plan of the active numbering: a parjam.domain.Halo whose ``pull`` takes values
+    of the owned active rows [lo, hi) and returns those of every distinct number of ``wanted``
+    outside [lo, hi) (the other ends of the half-edges), in ascending order (``ids``).  The
+    owner of a number is the rank whose [lo, hi) holds it (an allgather of the P row ranges);
+    one exchange of the requests (collective)."""
+    comm = as_mpi(comm)
+    wanted = np.unique(np.asarray(wanted, dtype=np.int64))
+    ghosts = wanted[(wanted < lo) | (wanted >= hi)]
+    ends = np.array(comm.allgather(int(hi)), dtype=np.int64)
+    owner = np.searchsorted(ends, ghosts, side="right")
+    nums, got = send_rows(comm, owner, ghosts, {"src": np.full(len(ghosts), comm.Get_rank())})
+    order = np.lexsort((nums, got["src"]))
+    size = comm.Get_size()
+    send_counts = np.bincount(got["src"], minlength=size).astype(np.int64)
+    recv_counts = np.bincount(owner, minlength=size).astype(np.int64)
+    return Halo(comm, nums[order] - lo, send_counts, recv_counts, np.arange(len(ghosts)),
+                ghosts, np.zeros((len(ghosts), 1)))
+
+
+def halo_rows(lo, hi, halo, numbers):
+    """Rows of [owned active rows lo..hi-1; ghosts of ``number_halo``] of active ``numbers``
+    (each owned or a ghost)."""
+    numbers = np.asarray(numbers, dtype=np.int64)
+    own = (numbers >= lo) & (numbers < hi)
+    return np.where(own, numbers - lo, (hi - lo) + np.searchsorted(halo.ids, numbers))
 
 
 def renumber(comm, halo, alive):

@@ -17,7 +17,15 @@ Each ``--tiles P:SMALL:K`` is one point: the packing SMALL tiled K^d times
   whatever P, so the per-rank memory shows what is replicated;
 - ``structure``: the ``--k`` lowest modes (shift-and-invert, MUMPS) and F_L, F_T on the shells
   up to |m| = 4.5 (``--kmax`` = 4.5 x 2 pi / L);
-- ``speeds``: B and G by linear response (parjam moduli's default solver).
+- ``speeds``: B and G by linear response (parjam moduli's default solver);
+- ``cubes``: the l* cubes at the command's default edges (0.2 .. 1 L, up to the whole packing),
+  ``--samples`` positions each: main counts every cube on one rank, this tree counts a cube of
+  more than N'/P members on all the ranks together (parjam.lengths.whole, issue 19 session 14).
+  Not in the default ``--parts``: ``--parts cubes``.
+
+``--old`` must import main's code: an executable of main's own venv, or a wrapper running
+``python -P -m parjam`` with main's tree on PYTHONPATH (without ``-P``, ``-m`` puts the current
+directory, this tree, ahead of PYTHONPATH and both columns measure the new code).
 
 Every rank runs under /usr/bin/time (peak resident set size of that rank); the table gives the
 largest and the mean over the ranks and the ratio NEW / OLD of the largest.  ``--parts`` and
@@ -40,7 +48,8 @@ sys.path.insert(0, os.path.join(ROOT, "scripts"))
 
 from peak_rss import measured  # noqa: E402
 from tile_packing import weak_point  # noqa: E402
-PARTS = ("lstar", "structure", "speeds")
+PARTS = ("lstar", "structure", "speeds", "cubes")
+DEFAULT_PARTS = ("lstar", "structure", "speeds")
 
 
 def peak_rss(exe, args, ranks):
@@ -61,6 +70,8 @@ def arguments(part, L, sigma, args):
     if part == "lstar":
         edges = ",".join(f"{e * sigma / L:.12g}" for e in args.edges_sigma)
         return ["--what", "lstar", "--edges", edges, "--samples", str(args.samples)]
+    if part == "cubes":
+        return ["--what", "lstar", "--samples", str(args.samples)]
     if part == "structure":
         return ["--what", "structure", "--k", str(args.k),
                 "--kmax", f"{4.5 * 2.0 * math.pi / L:.12g}"]
@@ -71,7 +82,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--tiles", nargs="+", required=True, help="P:SMALL.h5:K per point")
     ap.add_argument("--old", required=True, help="parjam executable of main")
-    ap.add_argument("--parts", nargs="+", default=list(PARTS), choices=PARTS)
+    ap.add_argument("--parts", nargs="+", default=list(DEFAULT_PARTS), choices=PARTS)
     ap.add_argument("--max-ranks", nargs="+", default=[],
                     help="PART:P, run PART only up to P ranks (time)")
     ap.add_argument("--edges-sigma", type=float, nargs="+", default=[2.0, 4.0, 8.0, 16.0])
@@ -115,7 +126,9 @@ def write(path, rows, args):
              f"Parts: `lstar` = cubes of edges {', '.join(f'{e:g}' for e in args.edges_sigma)} "
              f"mean diameters x {args.samples} positions each (the same cubes at every P); "
              f"`structure` = the {args.k} lowest modes (MUMPS shift-and-invert) and F_L, F_T on "
-             "the shells |m| <= 4.5; `speeds` = B, G by linear response.", "",
+             "the shells |m| <= 4.5; `speeds` = B, G by linear response; `cubes` = the l* "
+             f"cubes at the default edges 0.2, 0.3, .., 1 L x {args.samples} positions each.",
+             "",
              "| part | P | N | N/P | old max MB | old mean MB | new max MB | new mean MB | "
              "new/old (max) | old s | new s |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -8,6 +8,7 @@ One module per concept, all on the distributed active network (parjam.active):
 - :mod:`.sites` -- the network with the positions of each rank's own non-rattlers;
 - :mod:`.cubes` -- one cut cube: pruning, pieces, exact soft modes by MUMPS inertia, extended
   soft modes;
+- :mod:`.whole` -- one large cube counted by all the ranks together, its members where they are;
 - :mod:`.lstar` -- the cubes distributed over the ranks, the table and the fitted l*;
 - :mod:`.analysis` -- the whole ``parjam lengths`` analysis; :mod:`.output` -- the HDF5 group.
 """

@@ -104,10 +104,11 @@ def fit_structure(sf, w_star, k_fit, smooth):
 
 def compute(comm, source, what=("speeds", "omega"), *, matrix="full", k=None, method="auto",
             plateau=None, ells=None, samples=8, seed=0, k_max=None, k_fit=None, smooth=0.05,
-            progress=None, e0=None):
+            progress=None, e0=None, whole_above=None):
     """Compute only the parts in ``what`` (subset of WHAT) for one packing on ``comm``:
     ``source`` is a rowio.Rows (this rank's rows of the file), a Packing every rank holds, or
-    a parjam.lengths.sites.Sites."""
+    a parjam.lengths.sites.Sites.  ``whole_above``: l* cubes of more members are counted by all
+    the ranks together (parjam.lengths.lstar; default N'/P)."""
     bad = set(what) - set(WHAT)
     if bad or not what:
         raise ParjamError(f"unknown quantities {sorted(bad)}; choose from {', '.join(WHAT)}")
@@ -144,7 +145,8 @@ def compute(comm, source, what=("speeds", "omega"), *, matrix="full", k=None, me
         if ells is None:
             ells = np.linspace(0.2, 1.0, 9) * sites.L
         log(f"l*: {len(ells)} cube edges x {samples} positions")
-        res.lstar = lstar(comm, sites, ells, samples=samples, seed=seed, progress=log, e0=e0)
+        res.lstar = lstar(comm, sites, ells, samples=samples, seed=seed, progress=log, e0=e0,
+                          whole_above=whole_above)
     if "structure" in what:
         res.structure, res.structure_fit = structure_part(
             mpi, sites, res, k_max=k_max or default_k_max(sites.mean_diameter),

@@ -1,5 +1,7 @@
 """One cut cube of the l* analysis (Wyart, Silbert, Nagel & Witten, PRE 72, 051306 (2005),
-Section III and the Appendix): its soft modes, counted on a single-rank communicator.
+Section III and the Appendix): its soft modes, counted on a single-rank communicator (a cube of
+more than N'/P members is counted on the whole communicator by parjam.lengths.whole, with the
+same steps and these functions).
 
 Cut every contact crossing the boundary of a cube of edge l inside the packing and keep the n
 non-rattlers whose centres lie in it with their Nc_in internal contacts.  Floppy modes: at least
@@ -185,10 +187,11 @@ def count_cube(pos, internal, n_leaving, L, x0, ell, *, alpha, eps, scale, comm_
     return out
 
 
-def null_count(comm_self, M, scale):
-    """Null-space dimension of a cube's PSD matrix M, counted by inertia (softmodes.count_below,
-    under this command's own prefix) at both GAP_THRESHOLDS; -1 when the counts differ (no clear
-    gap: the soft count is unknown)."""
-    counts = {softmodes.count_below(comm_self, M, t * scale, prefix=INERTIA_PREFIX)
+def null_count(comm, M, scale, prefix=INERTIA_PREFIX):
+    """Null-space dimension of a cube's PSD matrix M (on one rank, or on the whole communicator
+    for parjam.lengths.whole), counted by inertia (softmodes.count_below, under this command's
+    own ``prefix``) at both GAP_THRESHOLDS; -1 when the counts differ (no clear gap: the soft
+    count is unknown)."""
+    counts = {softmodes.count_below(comm, M, t * scale, prefix=prefix)
               for t in GAP_THRESHOLDS}
     return counts.pop() if len(counts) == 1 else -1

@@ -14,16 +14,19 @@ measured l* is the edge at which the mean cut-plane count of the real cubes chan
 of any size, ``lstar_extended`` is the edge above which no cube keeps an *extended* soft mode
 (e > e0, default 0.4 x 2^-d, 40 % of a uniform mode; parjam.lengths.cubes).
 
-Distribution.  The cube corners are drawn from ``seed`` identically on every rank; cube t is
-counted on rank t mod P (on COMM_SELF).  The cubes go in rounds of P: in each round every rank
-finds which of its owned non-rattlers (parjam.lengths.sites) lie in each cube of the round and
-sends them, and the half-edges leaving them (parjam.active), to the cube's rank with one
-``parjam.domain.send_rows`` each.  A rank so holds its own N/P particles plus the members of one
-cube at a time, never all N positions or all contacts; the counts are identical to a count on
-one rank (members in particle-id order, contacts in (i, j) order).  A cube of edge l holds
-about (l / L)^d N' particles on its rank: cubes of a few l* are small, but an edge of the order
-of L (the default edges reach L) brings a large part of the packing to one rank; for large
-packings give edges in units of l* (``--edges``).
+Distribution.  The cube corners are drawn from ``seed`` identically on every rank, and the
+members of every cube are counted first (one allreduce of a count per cube).  A cube of at most
+N'/P members (``whole_above``) is counted on one rank, cube after cube in rounds of P: in each
+round every rank finds which of its owned non-rattlers (parjam.lengths.sites) lie in each cube
+of the round and sends them, and the half-edges leaving them (parjam.active), to the cube's rank
+with one ``parjam.domain.send_rows`` each; the rank counts it on COMM_SELF
+(parjam.lengths.cubes).  A larger cube, which would at least double its rank's share of the
+packing (the default edges reach L: the whole packing), is counted by all the ranks together
+with its members staying where they are (parjam.lengths.whole: distributed pruning and pieces,
+the SBAIJ matrix of the survivors and MUMPS inertia on the whole communicator).  A rank so holds
+its own N'/P particles plus at most N'/P members of a cube, never all N positions or all
+contacts; the counts are identical to a count on one rank (members in particle-id order,
+contacts in (i, j) order, each contact taken from its end with the smaller id).
 """
 
 from dataclasses import dataclass
@@ -33,6 +36,7 @@ import numpy as np
 from parjam import env, potential
 from parjam.domain import as_mpi, send_rows
 from parjam.errors import ParjamError
+from parjam.lengths import whole
 from parjam.lengths.cubes import count_cube, cube_members
 from parjam.lengths.sites import build as build_sites
 from parjam.network import Contacts
@@ -173,13 +177,32 @@ def gather_cube(comm, sites, x0, ell, dest):
     return got["pos"], internal, int(np.sum(lj < 0))
 
 
-def lstar(comm, source, ells, *, samples=8, seed=0, progress=None, e0=None, extended=True):
+def member_counts(comm, sites, corners, ells):
+    """Members (non-rattlers inside) of every cube, (edges, samples): this rank's owned ones
+    summed over the ranks (one allreduce)."""
+    n_e, n_s = corners.shape[:2]
+    mine = np.array([[np.count_nonzero(cube_members(sites.pos, sites.L, corners[e, s], ells[e]))
+                      for s in range(n_s)] for e in range(n_e)], dtype=np.int64)
+    return comm.allreduce(mine)
+
+
+def whole_threshold(net, size, whole_above):
+    """Cubes of more members than this are counted on the whole communicator: ``whole_above``,
+    by default N'/P (such a cube would at least double its rank's share of the packing)."""
+    return net.n_active / size if whole_above is None else whole_above
+
+
+def lstar(comm, source, ells, *, samples=8, seed=0, progress=None, e0=None, extended=True,
+          whole_above=None):
     """Cut cubes of every edge in ``ells`` at ``samples`` random positions (the same on every
-    rank count: positions from ``seed``) and count their soft modes, each cube on one rank
-    (module doc); ``source`` is a packing every rank holds, a rowio.Rows or a
-    parjam.lengths.sites.Sites.  The counts are gathered on every rank."""
+    rank count: positions from ``seed``) and count their soft modes (module doc): a cube of at
+    most ``whole_above`` members (default N'/P) on one rank, a larger one on all the ranks
+    together (parjam.lengths.whole; 0 sends every cube there, ``inf`` none).  ``source`` is a
+    packing every rank holds, a rowio.Rows or a parjam.lengths.sites.Sites.  The counts are
+    gathered on every rank."""
     PETSc = env.petsc()
     mpi = as_mpi(comm)
+    pcomm = comm if hasattr(comm, "tompi4py") else PETSc.Comm(comm)
     sites = build_sites(mpi, source)
     net = sites.net
     if net.n_active == 0 or net.excess < 0:
@@ -192,24 +215,35 @@ def lstar(comm, source, ells, *, samples=8, seed=0, progress=None, e0=None, exte
     corners = cube_corners(seed, ells, samples, net.d, L)
     e0 = default_e0(net.d) if e0 is None else e0
     size = mpi.Get_size()
-    total = len(ells) * samples
+    members = member_counts(mpi, sites, corners, ells).ravel()
+    big = members > whole_threshold(net, size, whole_above)
+    alone = np.flatnonzero(~big)
     mine = []
-    for first in range(0, total, size):  # one round: a cube per rank, gathered, then counted
+    for first in range(0, len(alone), size):  # one round: a cube per rank, gathered, counted
         cube = None
-        for t in range(first, min(first + size, total)):
-            e, s = divmod(t, samples)
-            got = gather_cube(mpi, sites, corners[e, s], ells[e], t - first)
-            cube = (t, e, s, got) if got is not None else cube
+        for dest, t in enumerate(alone[first:first + size]):
+            e, s = divmod(int(t), samples)
+            got = gather_cube(mpi, sites, corners[e, s], ells[e], dest)
+            cube = (int(t), e, s, got) if got is not None else cube
         if cube is not None:
             t, e, s, (pos, internal, leaving) = cube
             mine.append((t, count_cube(pos, internal, leaving, L, corners[e, s], ells[e],
                                        alpha=net.alpha, eps=net.eps, scale=scale,
                                        comm_self=PETSc.COMM_SELF,
                                        e0=e0 if extended else None)))
-    everything = sorted(sum(mpi.allgather(mine), []), key=lambda x: x[0])
+    together = []
+    if big.any():
+        plan = whole.prepare(mpi, sites)
+        for t in np.flatnonzero(big):
+            e, s = divmod(int(t), samples)
+            together.append((int(t), whole.count_whole(pcomm, sites, plan, corners[e, s],
+                                                       ells[e], scale=scale,
+                                                       e0=e0 if extended else None)))
+    everything = sorted(sum(mpi.allgather(mine), []) + together, key=lambda x: x[0])
     failed = sum(x[1].null < 0 for x in everything)
     if progress is not None:
-        progress(f"l*: {len(everything)} cubes counted, {failed} without a clear gap")
+        progress(f"l*: {len(everything)} cubes counted ({len(together)} on all ranks "
+                 f"together), {failed} without a clear gap")
     return LstarResult(ells, [x[1] for x in everything], samples,
                        lstar_estimate(net.d, net.z, net.dz, mean_normal), net.dz, net.z, failed,
                        e0 if extended else float("nan"))
