@@ -1,6 +1,10 @@
 """The overlap function f(x) of the soft modes against N (issue 23, part 2; docs/reproduction.md
 section 12): isostatic members at several N, both cut geometries, one results JSON.
 
+Why one file of ~510 lines: run, adopt, collect and tables share one directory layout
+(ROOT/N{N}[_s{seed}]/packings, cuts, costs.json) and one JSON schema; split, each would have to
+restate them.
+
     python scripts/fx_vs_n.py run --n 1024 4096 --members 5 --root DIR [--launch "srun"]
     python scripts/fx_vs_n.py adopt --n N --packings OUT --log LOG --root DIR   (optional)
     python scripts/fx_vs_n.py collect --root DIR --out results.json
