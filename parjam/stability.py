@@ -102,7 +102,7 @@ def count_below(comm, H, sigma):
         factor.direct_cholesky(ksp)
         ksp.setOperators(A)
         ksp.setFromOptions()
-        factor.exact_inertia(ksp.getPC())
+        factor.exact_inertia(ksp.getPC(), inertia_only=True)
         ksp.setUp()
         count = factor.negative_pivots(ksp.getPC())
     finally:

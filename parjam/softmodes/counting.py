@@ -30,7 +30,7 @@ def count_below(comm, M, s, prefix="soft_inertia_"):
         pc.setOptionsPrefix(prefix)
         pc.setOperators(As)
         factor.use_cholesky(pc)
-        factor.exact_inertia(pc, null_pivots=True)
+        factor.exact_inertia(pc, null_pivots=True, inertia_only=True)
         pc.setFromOptions()
         pc.setUp()
         neg, zero, _ = pc.getFactorMatrix().getInertia()
