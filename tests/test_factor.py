@@ -1,0 +1,82 @@
+"""parjam.factor: the inertia of a MUMPS LDL^T with its factor kept and discarded (ICNTL(31))
+against the exact eigenvalue count of a matrix whose spectrum is known (the 2D grid Laplacian,
+Dirichlet), on 1 and 2 ranks."""
+
+import numpy as np
+import pytest
+
+from parjam import env, factor
+
+M = 14  # grid of M x M unknowns
+
+
+def laplacian_eigenvalues():
+    c = 2.0 - 2.0 * np.cos(np.arange(1, M + 1) * np.pi / (M + 1))
+    return (c[:, None] + c[None, :]).ravel()
+
+
+def shifted_laplacian(sigma):
+    """5-point Laplacian - sigma I as SBAIJ (upper triangle), rows split over the ranks."""
+    PETSc = env.petsc()
+    n = M * M
+    A = PETSc.Mat().createSBAIJ((n, n), bsize=1, nnz=3, comm=PETSc.COMM_WORLD)
+    A.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
+    lo, hi = A.getOwnershipRange()
+    for r in range(lo, hi):
+        i, j = divmod(r, M)
+        A.setValue(r, r, 4.0 - sigma)
+        if j + 1 < M:
+            A.setValue(r, r + 1, -1.0)
+        if i + 1 < M:
+            A.setValue(r, r + M, -1.0)
+    A.assemble()
+    return A
+
+
+def factorised(A, inertia_only):
+    PETSc = env.petsc()
+    ksp = PETSc.KSP().create(comm=A.getComm())
+    ksp.setOptionsPrefix("test_factor_")
+    factor.direct_cholesky(ksp)
+    ksp.setOperators(A)
+    ksp.setFromOptions()
+    factor.exact_inertia(ksp.getPC(), inertia_only=inertia_only)
+    ksp.setUp()
+    return ksp
+
+
+@pytest.mark.parametrize("inertia_only", [False, True])
+@pytest.mark.parametrize("sigma", [0.05, 1.3, 4.01, 7.9])
+def test_negative_pivots_count_the_eigenvalues_below_the_shift(sigma, inertia_only):
+    if not env.has_mumps():
+        pytest.skip("this PETSc has no MUMPS")
+    lam = laplacian_eigenvalues()
+    assert np.min(np.abs(lam - sigma)) > 1e-3  # the shift is no eigenvalue
+    A = shifted_laplacian(sigma)
+    ksp = factorised(A, inertia_only)
+    try:
+        F = ksp.getPC().getFactorMatrix()
+        assert F.getMumpsIcntl(31) == (1 if inertia_only else 0)
+        assert factor.negative_pivots(ksp.getPC()) == int(np.sum(lam < sigma))
+    finally:
+        ksp.destroy()
+        A.destroy()
+
+
+def test_a_kept_factor_still_solves():
+    """Without inertia_only the factor is the solver's (Newton, shift-and-invert)."""
+    if not env.has_mumps():
+        pytest.skip("this PETSc has no MUMPS")
+    A = shifted_laplacian(1.3)
+    ksp = factorised(A, False)
+    x, b = A.createVecs()
+    r = b.duplicate()
+    try:
+        b.setRandom()
+        ksp.solve(b, x)
+        A.mult(x, r)
+        r.axpy(-1.0, b)
+        assert r.norm() <= 1e-10 * b.norm()
+    finally:
+        for obj in (ksp, A, x, b, r):
+            obj.destroy()
