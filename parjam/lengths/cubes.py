@@ -190,8 +190,7 @@ def count_cube(pos, internal, n_leaving, L, x0, ell, *, alpha, eps, scale, comm_
 def null_count(comm, M, scale, prefix=INERTIA_PREFIX):
     """Null-space dimension of a cube's PSD matrix M (on one rank, or on the whole communicator
     for parjam.lengths.whole), counted by inertia (softmodes.count_below, under this command's
-    own ``prefix``) at both GAP_THRESHOLDS; -1 when the counts differ (no clear gap: the soft
-    count is unknown)."""
-    counts = {softmodes.count_below(comm, M, t * scale, prefix=prefix)
-              for t in GAP_THRESHOLDS}
+    own ``prefix``) at both GAP_THRESHOLDS (softmodes.gap_counts: differing counts are taken
+    once more); -1 when they still differ (no clear gap: the soft count is unknown)."""
+    counts = set(softmodes.gap_counts(comm, M, scale, GAP_THRESHOLDS, prefix=prefix))
     return counts.pop() if len(counts) == 1 else -1

@@ -27,8 +27,8 @@ from parjam.errors import ParjamError
 from parjam.softmodes.analysis import SoftModes, analyze, characterise
 from parjam.softmodes.basis import (BASIS_METHODS, COLUMNS_DEFAULT, COLUMNS_MAX, NullBasis,
                                     eq3_residual)
-from parjam.softmodes.counting import (count_below, expected_zero_modes, null_count,
-                                       variational_count)
+from parjam.softmodes.counting import (count_below, expected_zero_modes, gap_counts,
+                                       null_count, variational_count)
 from parjam.softmodes.cut import (AXES, CutSystem, Plane, WholeCut, bound_to, crossing,
                                   cut_masks, cut_system, half_edge_masks, parse_cut, prepare,
                                   subdivision_planes)
@@ -53,6 +53,7 @@ __all__ = [
     "bound_to", "characterise", "check_directory", "coordinate_from_plane", "count_below",
     "crossing", "cut_masks", "cut_pairs", "cut_system", "energies", "eq3_residual",
     "expected_zero_modes", "extended_basis", "extended_fraction", "extension", "gap_above",
+    "gap_counts",
     "gradient_bound", "gram", "half_edge_masks", "localised_ids", "localised_vectors",
     "modulation", "null_basis", "null_basis_block", "null_basis_krylov", "null_count",
     "omega_L2", "orthonormality_error", "overlap_function", "overlap_without_localised",
