@@ -26,16 +26,29 @@ MAX_DAYS = 30.0
 #: a member are not divided over the ranks that share it (conservative)
 PACK_BASE_MB = 150.0
 PACK_PER_PARTICLE_MB = 0.0105
+#: the stability check of every returned state (parjam.stability: a MUMPS LDL^T of the full
+#: Hessian, its factor discarded, so its frontal stack): in 3D 745 MB at N = 32768, growing as
+#: N^1.5 (measured 55 / 273 / 745 / 2042 MB at N = 4096 / 13824 / 32768 / 64000, exponent 1.5
+#: over the last pair; docs/scaling.md, "Counting without keeping the factor").  In 2D it adds
+#: under 1 kB per particle (245 MB at N = 262,144), inside PACK_PER_PARTICLE_MB.
+PACK_CHECK_3D_MB = 745.0
+PACK_CHECK_3D_N = 32768.0
+PACK_CHECK_EXPONENT = 1.5
 
 
-def pack_memory_mb(n):
-    """Estimated peak memory of one pack process for a member of N particles (MB)."""
-    return PACK_BASE_MB + PACK_PER_PARTICLE_MB * float(n)
+def pack_memory_mb(n, d=3):
+    """Estimated peak memory of one pack process for a member of N particles in d dimensions
+    (MB): the engine's arrays, plus the stability check's factorisation in 3D."""
+    check = 0.0
+    if d == 3:
+        check = PACK_CHECK_3D_MB * (float(n) / PACK_CHECK_3D_N) ** PACK_CHECK_EXPONENT
+    return PACK_BASE_MB + PACK_PER_PARTICLE_MB * float(n) + check
 
 
 def pack_seconds(d, n, states, phic_method="bisect"):
-    """Estimated one-core seconds of one member: the model of parjam.scene (measured: 3D
-    N = 512 full ladder 10-25 s, 2D N = 1024 ~80 s; extrapolate 0.4x)."""
+    """Estimated one-core seconds of one member, for `pack` and the study planner
+    (parjam.study.plan; measured: 3D N = 512 full ladder 10-25 s, 2D N = 1024 ~80 s; extrapolate
+    0.4x: 3D N = 10240, five states, 710 s per member)."""
     per = 0.04 * float(n) ** 1.1 * (3.0 if d == 2 else 1.0) * (1 + 0.15 * max(states, 1))
     return per * (0.4 if phic_method == "extrapolate" else 1.0)
 

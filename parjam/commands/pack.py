@@ -131,7 +131,7 @@ def fits_machine(args, world):
     states = len(args.dphi or args.pressure or [args.phi]) + (args.phi is None)
     rounds = -(-args.members // min(args.members, world.getSize()))  # members per group
     seconds = rounds * resources.pack_seconds(args.dim, args.n, states, args.phic_method)
-    memory = resources.pack_memory_mb(args.n)
+    memory = resources.pack_memory_mb(args.n, args.dim)
     if getattr(args, "dry_run", False):
         text = resources.describe(memory, seconds, resources.ranks_on_node(world.tompi4py()))
         if world.getRank() == 0:

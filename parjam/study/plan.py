@@ -20,7 +20,7 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 
-from parjam import kpm_dos, solver_choice
+from parjam import kpm_dos, resources, solver_choice
 from parjam.errors import ParjamError
 from parjam.study.scene import System
 
@@ -170,12 +170,10 @@ def estimate(stage, scene):
     s, members = stage.system, scene.members
     n, dof = s.n, s.max_dof
     nstates = len(stage.states) or 1
-    if stage.kind == "pack":
-        # measured on this machine: 3D N = 512 full ladder 10-25 s, 2D N = 1024 ~80 s
-        per = 0.04 * n ** 1.1 * (3.0 if s.d == 2 else 1.0) * (1 + 0.15 * nstates)
-        if stage.params.get("phic_method") == "extrapolate":
-            per *= 0.4  # measured: 3D N = 10240, five states, 710 s per member (2 ranks busy)
-        return 50 + n * 2e-3, members * per
+    if stage.kind == "pack":  # the models `parjam pack` checks itself against
+        per = resources.pack_seconds(s.d, n, nstates,
+                                     stage.params.get("phic_method") or "bisect")
+        return resources.pack_memory_mb(n, s.d), members * per
     if stage.kind == "spectrum":
         mem, sec = 0.0, 0.0
         for st in stage.states:
