@@ -175,6 +175,19 @@ def test_pack_and_run_refuse_plans_that_do_not_fit(tmp_path, monkeypatch):
     assert not resources.verdict(resources.pack_memory_mb(1e3), 1.0, 2, 1e4, (10.0, "x"))
 
 
+def test_the_pack_estimate_covers_the_measured_stability_check():
+    """The machine check's pack model against the peaks measured for the stability check alone
+    (docs/bench-inertia-memory.md, 3D, 1 rank; 2D: docs/scaling.md), within its factor of 2."""
+    from parjam import resources
+
+    for n, measured in ((4096, 161), (32768, 896), (64000, 2239)):
+        est = resources.pack_memory_mb(n, 3)
+        assert measured <= est <= 2.0 * measured + resources.PACK_BASE_MB, (n, est)
+    # 2D: the check is small (579 MB peak at N = 262,144); the engine's 3D per-particle
+    # term covers it
+    assert 579 <= resources.pack_memory_mb(262144, 2) < resources.pack_memory_mb(262144, 3)
+
+
 # --- dos inputs -------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def spectra(shared_tmp):
