@@ -283,3 +283,27 @@ def test_bad_scratch_is_one_line_exit_2_and_no_file(comm, tmpdir_all, capsys, ba
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert len(lines) == 1 and lines[0].startswith("parjam: error:")
         assert message in lines[0]
+
+
+def test_column_blocks_report_their_progress(comm):
+    """Each column block reports the null vectors found so far (block_progress prints at most
+    once per interval, never the last block, which the analysis reports itself)."""
+    from parjam.softmodes.analysis import block_progress
+
+    cs = cut_system(ISO[0])
+    M = sm.relaxed_matrix(comm, cs, cs.kept)
+    n_soft = sm.null_count(comm, M, cs.scale) - cs.d
+    seen = []
+    sm.null_basis(comm, M, cs.d, n_soft, cs.scale, "block", columns=13, progress=seen.append)
+    M.destroy()
+    assert seen == [min(13 * (i + 1), n_soft) for i in range(-(-n_soft // 13))]
+    lines = []
+    report = block_progress(lines.append, n_soft, every=0.0)
+    for found in seen:
+        report(found)
+    assert len(lines) == len(seen) - 1 and lines[0].startswith(f"null space: 13 of {n_soft}")
+    quiet = []
+    report = block_progress(quiet.append, n_soft, every=3600.0)
+    for found in seen:
+        report(found)
+    assert quiet == []

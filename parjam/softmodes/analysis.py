@@ -21,6 +21,8 @@ from parjam.softmodes.observables import (coordinate_from_plane, extended_basis,
 from parjam.softmodes.operators import relaxed_matrix, rigidity_matrix
 from parjam.softmodes.trial import energies, omega_L2
 
+PROGRESS_SECONDS = 60.0  # the null basis reports its column blocks at most once a minute
+
 
 @dataclass(kw_only=True)
 class SoftModes:
@@ -118,7 +120,8 @@ def analyze(comm, cs, e0=0.1, nbins=10, progress=None, basis="block",
     stage.push()
     M = relaxed_matrix(comm, cs, cs.kept)
     nb = null_basis(comm, M, d, n_soft, scale, basis, columns,
-                    store=None if scratch is None else scratch.basis)
+                    store=None if scratch is None else scratch.basis,
+                    progress=block_progress(log, n_soft))
     S = rigidity_matrix(comm, cs, cs.kept)
     eq3 = eq3_residual(comm, S, nb.V)
     S.destroy()
@@ -139,6 +142,20 @@ def analyze(comm, cs, e0=0.1, nbins=10, progress=None, basis="block",
                   "out_of_core": scratch is not None,
                   **{f"seconds_{k}": v for k, v in times.items()}}
     return res
+
+
+def block_progress(log, n_soft, every=PROGRESS_SECONDS):
+    """A progress callback for the column blocks of the null basis: one line per ``every``
+    seconds at most (a cut at N = 1e5 spends an hour there)."""
+    t0 = last = time.perf_counter()
+
+    def report(found):
+        nonlocal last
+        now = time.perf_counter()
+        if now - last >= every and found < n_soft:
+            last = now
+            log(f"null space: {found} of {n_soft} soft modes ({now - t0:.0f} s)")
+    return report
 
 
 def characterise(comm, cs, nb, count, e0, nbins):

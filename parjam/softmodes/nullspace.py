@@ -28,14 +28,17 @@ from parjam.softmodes.linalg import (allreduce, column_blocks, deflated, normali
 from parjam.softmodes.operators import translation_columns
 
 
-def null_basis(comm, M, d, n_soft, scale, method="block", columns=COLUMNS_DEFAULT, store=None):
+def null_basis(comm, M, d, n_soft, scale, method="block", columns=COLUMNS_DEFAULT, store=None,
+               progress=None):
     """The n_soft null vectors of M orthogonal to the d translations (a :class:`NullBasis`), by
     block inverse iteration (``block``, the default; much faster for hundreds of modes, see
     docs/bench-softmodes.md) in blocks of ``columns`` (None: one block) or by SLEPc
     Krylov-Schur shift-and-invert (``krylov``).  ``store`` (block only): a callable n_loc ->
-    empty :class:`parjam.softmodes.scratch.ScratchBasis` that keeps the basis out of core."""
+    empty :class:`parjam.softmodes.scratch.ScratchBasis` that keeps the basis out of core.
+    ``progress`` (block only): called with the number of null vectors found after each block."""
     if method == "block":
-        return null_basis_block(comm, M, d, n_soft, scale, columns=columns, store=store)
+        return null_basis_block(comm, M, d, n_soft, scale, columns=columns, store=store,
+                                progress=progress)
     if store is not None:
         raise ParjamError("an out-of-core basis (--scratch) needs the block method")
     if method == "krylov":
@@ -45,7 +48,7 @@ def null_basis(comm, M, d, n_soft, scale, method="block", columns=COLUMNS_DEFAUL
 
 def null_basis_block(comm, M, d, n_soft, scale, prefix="soft_", oversample=8, tau=1e-8,
                      tol=1e-12, passes=3, max_rounds=5, columns=COLUMNS_DEFAULT, block=512,
-                     seed=0, store=None):
+                     seed=0, store=None, progress=None):
     """The n_soft null vectors of M orthogonal to the d translations, by block inverse
     (subspace) iteration with one MUMPS Cholesky factor of A = M + tau k I.
 
@@ -57,7 +60,7 @@ def null_basis_block(comm, M, d, n_soft, scale, prefix="soft_", oversample=8, ta
     columns.  The solves use MUMPS's multi-RHS path in blocks of ``block`` columns; the
     orthonormalisation and Rayleigh-Ritz are dense BLAS-3 on the local rows.
     ``-soft_ksp_*``/``-soft_pc_*`` options reach the factorisation, ``-soft_gap_eps_*`` the gap
-    solve.  ``store``: see :func:`null_basis`.
+    solve.  ``store``, ``progress``: see :func:`null_basis`.
     """
     lo, hi = M.getOwnershipRange()
     k = min(n_soft + oversample, M.getSize()[0] - d)
@@ -83,6 +86,8 @@ def null_basis_block(comm, M, d, n_soft, scale, prefix="soft_", oversample=8, ta
             theta[found:found + need] = tb[:need]
             found += need
             iterations = max(iterations, its)
+            if progress is not None:
+                progress(found)
         gap = gap_above(comm, ksp, (T, V), tau * scale, prefix + "gap_")
     finally:
         ksp.destroy()
