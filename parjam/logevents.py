@@ -1,7 +1,7 @@
 """PETSc log events around the packing engine's hot spots, so that ``-log_view`` shows where a
-packing spends its time (next to the stages of parjam.packing.log_stage):
+packing spends its time (next to the stages of parjam.pack.packing.log_stage):
 
-  parjam: force kernel      the compiled pair kernel / fused FIRE step (parjam.kernels)
+  parjam: force kernel      the compiled pair kernel / fused FIRE step (parjam.pack.kernels)
   parjam: FIRE allreduce    the one reduction of a fused FIRE step
   parjam: nbr rebuild       a Verlet-list rebuild (the engine's: migration, ghost plan, search)
   parjam: halo exchange     the ghost refresh before a force evaluation (one per FIRE step)

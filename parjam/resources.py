@@ -26,7 +26,7 @@ MAX_DAYS = 30.0
 #: a member are not divided over the ranks that share it (conservative)
 PACK_BASE_MB = 150.0
 PACK_PER_PARTICLE_MB = 0.0105
-#: the stability check of every returned state (parjam.stability: a MUMPS LDL^T of the full
+#: the stability check of every returned state (parjam.pack.stability: a MUMPS LDL^T of the full
 #: Hessian, its factor discarded, so its frontal stack): in 3D 745 MB at N = 32768, growing as
 #: N^1.5 (measured 55 / 273 / 745 / 2042 MB at N = 4096 / 13824 / 32768 / 64000, exponent 1.5
 #: over the last pair; docs/scaling.md, "Counting without keeping the factor").  In 2D it adds

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Memory of a checkpointed ``parjam pack`` member shared by P ranks, main's whole-file
 checkpoint (OLD: positions and velocities gathered to every rank, written by rank 0 from an
-in-memory HDF5 image) and this tree's checkpoint by rows (NEW: parjam.checkpointio) side by
+in-memory HDF5 image) and this tree's checkpoint by rows (NEW: parjam.files.checkpointio) side by
 side in one run (issue 18).  Run by hand, never in the test suite:
 
     source scripts/mpi-env
@@ -39,14 +39,14 @@ DRIVER = r"""
 import json, os, sys
 import numpy as np
 from mpi4py import MPI
-from parjam import checkpoint, cli
+from parjam import cli; from parjam.pack import checkpoint
 from parjam.errors import ParjamError
 
 writes, stats = int(sys.argv[1]), {"rank0_piece": 0, "block": 0, "gathered": 0, "writes": 0}
 # the tree under test (an editable install's finder would find checkpointio in another tree)
 new = os.path.exists(os.path.join(os.path.dirname(checkpoint.__file__), "checkpointio.py"))
 if new:
-    from parjam import checkpointio, rowio
+    from parjam.files import checkpointio, rowio
     put, write_rows = rowio.RowFile.put, checkpointio.write_rows
 
     def counting_put(self, name, axis, first, piece):
@@ -89,9 +89,9 @@ if comm.Get_rank() == 0:
 WRITE_COST = r"""
 import json, sys, tempfile, time
 import numpy as np
-from parjam import checkpoint, env
-from parjam.forces import ForceField
-from parjam.minimize import MinResult
+from parjam import env; from parjam.pack import checkpoint
+from parjam.pack.forces import ForceField
+from parjam.pack.minimize import MinResult
 
 n, records = int(sys.argv[1]), int(sys.argv[2])
 comm = env.petsc().COMM_WORLD
@@ -195,7 +195,7 @@ def main():
         f"of one member shared by P ranks at {args.per_rank} particles per rank, stopped after "
         f"checkpoint write {args.writes} (FIRE snapshots of the first quench, every 100 "
         "steps).  OLD: main (the whole-file checkpoint); NEW: this tree (the index and pieces "
-        "of parjam.checkpointio).  Ranks oversubscribed on a 2-core machine shared with other "
+        "of parjam.files.checkpointio).  Ranks oversubscribed on a 2-core machine shared with other "
         "jobs: times are not comparable, memory is.", "",
         "Peak RSS: the largest over the ranks (max RSS of /usr/bin/time).  Rows held for a "
         "write: OLD, the rows in the HDF5 image rank 0 builds (all finished minimisations' "

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The packing engine on the domain decomposition (parjam.engine, issue 18) against the engine
+"""The packing engine on the domain decomposition (parjam.pack.engine, issue 18) against the engine
 it replaced (main at d5de07f: PETSc row blocks, positions gathered to every rank at each
 neighbour rebuild), side by side in one run.
 
@@ -10,7 +10,7 @@ Two measurements, each run as `mpirun -n P <python> scripts/bench_engine.py --wo
 the old checkout's interpreter and code, then this one's:
 
 1. ns per particle per FIRE step (3D, monodisperse, harmonic, phi = 0.70, quenched --warm steps
-   first) at N = 4096 and 32768 on 1 and 2 ranks: --steps FIRE steps (parjam.fire.fire) timed
+   first) at N = 4096 and 32768 on 1 and 2 ranks: --steps FIRE steps (parjam.pack.fire.fire) timed
    in process CPU time (the slowest rank; on a machine shared with other jobs CPU time counts
    this process's work), the fastest of --repeat in each of --rounds alternating old/new
    runs; next to the pair kernel alone
@@ -18,7 +18,7 @@ the old checkout's interpreter and code, then this one's:
 2. Weak scaling of a FIRE quench of one member shared by P ranks, 25,000 particles per rank,
    P = 1, 2, 4, 8 (oversubscribed on this machine): --quench steps from a random start; peak
    RSS per rank (VmHWM, the largest rank's) and wall time per step.  Each rank makes only its
-   own rows (a slab of the box, numbered cell by cell, as parjam.packing.random_packing does),
+   own rows (a slab of the box, numbered cell by cell, as parjam.pack.packing.random_packing does),
    so that the configuration's generation does not set the peak; the diameters (N numbers) are
    the ForceField's argument in both versions.
 
@@ -68,7 +68,7 @@ def gather(ff):
 def field(n, phi, seed):
     import numpy as np
     from parjam import env
-    from parjam.forces import ForceField
+    from parjam.pack.forces import ForceField
 
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
@@ -84,9 +84,9 @@ def worker_step(a):
     """ns / particle / step of FIRE and of the kernel alone at a.n."""
     import numpy as np
     from mpi4py import MPI
-    from parjam import kernels
-    from parjam.fire import FireParams, fire
-    from parjam.system import neighbour_pairs_touching
+    from parjam.pack import kernels
+    from parjam.pack.fire import FireParams, fire
+    from parjam.net.system import neighbour_pairs_touching
 
     mpi = MPI.COMM_WORLD
     ff = field(a.n, 0.70, 1)
@@ -122,7 +122,7 @@ def worker_step(a):
 def worker_weak(a):
     """Peak RSS per rank and wall time per step of a FIRE quench, a.per_rank particles a rank."""
     from mpi4py import MPI
-    from parjam.fire import FireParams, fire
+    from parjam.pack.fire import FireParams, fire
 
     mpi = MPI.COMM_WORLD
     n = a.per_rank * mpi.Get_size()
@@ -142,7 +142,7 @@ def worker_base(a):
     """Peak RSS per rank of the same process with 64 particles a rank: libraries, MPI and PETSc
     (what no packing engine can save)."""
     from mpi4py import MPI
-    from parjam.fire import FireParams, fire
+    from parjam.pack.fire import FireParams, fire
 
     mpi = MPI.COMM_WORLD
     ff = field(64 * mpi.Get_size(), 0.66, 2)

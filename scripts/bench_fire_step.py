@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """The cost of one FIRE step against the pair kernel alone on the same state, for the fused
-step (parjam.fire.fire: one compiled call for update + forces + sums, one allreduce) and the
-step-by-step PETSc FIRE it replaced (parjam.fire.fire_unfused), side by side in one run.
+step (parjam.pack.fire.fire: one compiled call for update + forces + sums, one allreduce) and the
+step-by-step PETSc FIRE it replaced (parjam.pack.fire.fire_unfused), side by side in one run.
 
     source scripts/mpi-env
     nice -n 10 .venv/bin/python scripts/bench_fire_step.py --n 4096 32768 100000
@@ -39,10 +39,11 @@ BEGIN, END = "<!-- bench_fire_step:begin -->", "<!-- bench_fire_step:end -->"
 
 
 def measure(n, steps, repeat, warm, seed=1, warm_ftol=0.0):
-    from parjam import env, kernels
-    from parjam.fire import FireParams, fire, fire_unfused
-    from parjam.forces import ForceField
-    from parjam.packing import random_packing
+    from parjam import env
+    from parjam.pack import kernels
+    from parjam.pack.fire import FireParams, fire, fire_unfused
+    from parjam.pack.forces import ForceField
+    from parjam.pack.packing import random_packing
     from parjam.testing.gather import gather
 
     PETSc = env.petsc()
@@ -61,7 +62,7 @@ def measure(n, steps, repeat, warm, seed=1, warm_ftol=0.0):
     cells = kernels.cell_pairs
     for _ in range(repeat):
         for kind in ("old", "new", "kernel"):
-            # the old step rebuilt its list with a k-d tree (parjam.system), the new by cells
+            # the old step rebuilt its list with a k-d tree (parjam.net.system), the new by cells
             kernels.cell_pairs = (lambda *a: None) if kind == "old" else cells
             ff.set_positions(start)
             ff.renew_neighbours()

@@ -11,7 +11,7 @@ side in one run.
 Both variants run ``--steps`` FIRE steps (ftol = 0, so exactly that many) from the same
 perturbed positions, alternating (ABAB...) ``--repeat`` times, so that a load change on a shared
 machine hits both; then ``--rebuilds`` list rebuilds each, alternating too.  Their forces
-are bitwise equal (tests/test_potential_forces.py), hence the trajectories, neighbour-list
+are bitwise equal (tests/net/test_potential_forces.py), hence the trajectories, neighbour-list
 rebuilds and final energies are the same; the script checks that.
 Rank 0 prints the milliseconds per step and per rebuild of each variant and the ratios.
 """
@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 
 def rebuild_full(self, pos):
     """The rebuild before: a k-d tree of all N positions on every rank."""
-    from parjam.system import neighbour_pairs, wrap
+    from parjam.net.system import neighbour_pairs, wrap
 
     pairs = neighbour_pairs(wrap(pos, self.L), self.L, self.dmax + self.skin)
     i, j = pairs[:, 0], pairs[:, 1]
@@ -43,7 +43,7 @@ def rebuild_full(self, pos):
 def evaluate_allgather(self, f, diam):
     """The evaluation before the halo: all N positions gathered to every rank each time (and,
     as then, all N diameters on every rank)."""
-    from parjam import kernels
+    from parjam.pack import kernels
     from parjam.testing.gather import gather
 
     self.n_force_calls += 1
@@ -55,7 +55,7 @@ def evaluate_allgather(self, f, diam):
 
 
 def force_field(comm, pack, variant):
-    from parjam.forces import ForceField
+    from parjam.pack.forces import ForceField
 
     ff = ForceField(comm, pack.diam, pack.L, pack.d, pack.alpha, pack.eps)
     if variant == "allgather":
@@ -82,8 +82,8 @@ def time_rebuilds(comm, pack, count, variant):
 
 
 def run(comm, pack, start, steps, variant):
-    from parjam import minimize
-    from parjam.fire import fire_unfused
+    from parjam.pack import minimize
+    from parjam.pack.fire import fire_unfused
 
     ff = force_field(comm, pack, variant)
     ff.set_positions(start)
@@ -110,13 +110,14 @@ def main():
     ap.add_argument("--json", help="append the record to this JSON list (rank 0)")
     args, petsc_args = ap.parse_known_args()
 
-    from parjam import env, io
+    from parjam import env
+    from parjam.files import h5md
 
     env.init(petsc_args)
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
     mpi = comm.tompi4py()
-    pack = io.read_packing(args.packing)
+    pack = h5md.read_packing(args.packing)
     rng = np.random.default_rng(1)
     start = pack.pos + args.kick * pack.diam.min() * rng.uniform(-1, 1, pack.pos.shape)
     times = {"allgather": [], "halo": []}

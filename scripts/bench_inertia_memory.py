@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Peak memory of the packing protocol's stability check (parjam.stability.check: the inertia of
+"""Peak memory of the packing protocol's stability check (parjam.pack.stability.check: the inertia of
 the MUMPS LDL^T of the full Hessian of the non-rattlers) with the factor kept, as before, and
 discarded as it is computed (MUMPS ICNTL(31) = 1, ``factor.exact_inertia(inertia_only=True)``,
 now the default), side by side in one run.  Run by hand, never in the test suite:
@@ -29,13 +29,13 @@ VARIANTS = {"kept": "-stability_mat_mumps_icntl_31 0", "discarded": ""}
 
 CHILD = r"""
 import json, resource, sys, time
-from parjam import env, io, jamnet, stability
+from parjam import env; from parjam.files import h5md; from parjam.pack import jamnet, stability
 PETSc = env.petsc()
 comm = PETSc.COMM_WORLD
 mpi = comm.tompi4py()
 def rss():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-pack = io.read_packing(sys.argv[1])
+pack = h5md.read_packing(sys.argv[1])
 net = jamnet.from_packing(mpi, pack)
 before = rss()
 t0 = time.perf_counter()

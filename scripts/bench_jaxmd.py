@@ -102,8 +102,8 @@ def worker_parjam(a):
     import numpy as np
     from mpi4py import MPI
     from parjam import env
-    from parjam.fire import FireParams, fire
-    from parjam.forces import ForceField
+    from parjam.pack.fire import FireParams, fire
+    from parjam.pack.forces import ForceField
 
     PETSc = env.petsc()
     z = np.load(a.state)
@@ -203,7 +203,7 @@ def main():
         sys.exit("bench_jaxmd: give --jax-python, the python of a venv with jax-md")
     sys.path.insert(0, ROOT)
     import numpy as np
-    from parjam.packing import member_rng, random_packing
+    from parjam.pack.packing import member_rng, random_packing
 
     with tempfile.TemporaryDirectory(prefix="bench-jaxmd-") as tmp:
         pk = random_packing(3, a.n, a.phi, 2.0, "mono", rng=member_rng(a.seed, 0))

@@ -60,9 +60,9 @@ def peak_rss(exe, args, ranks):
 
 def box(path):
     """(N, L, mean diameter) of a packing file (read by the driver, not measured)."""
-    from parjam import io
+    from parjam.files import h5md
 
-    pack = io.read_packing(path)
+    pack = h5md.read_packing(path)
     return pack.n, float(pack.L), float(pack.diam.mean())
 
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Benchmark of the elastic moduli by linear response (``parjam.moduli.compute``: MUMPS-
+"""Benchmark of the elastic moduli by linear response (``parjam.vib.moduli.compute``: MUMPS-
 preconditioned CG, or an iterative preconditioner) against a scipy sparse direct solve of the
 same system (SuperLU of D with particle 0 pinned, the d(d+1)/2 strain right-hand sides), in the
 same run.  Run by hand, never in the test suite:
@@ -36,12 +36,14 @@ def peak_rss_mb():
 # --------------------------------------------------------------------------- worker (parjam)
 
 def worker(path):
-    from parjam import env, io, moduli
+    from parjam import env
+    from parjam.files import h5md
+    from parjam.vib import moduli
 
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
     t0 = time.perf_counter()
-    pack = io.read_packing(path)
+    pack = h5md.read_packing(path)
     t_read = time.perf_counter() - t0
     rss0 = peak_rss_mb()
     comm.tompi4py().Barrier()
@@ -70,11 +72,11 @@ def worker(path):
 # --------------------------------------------------------------------------- baseline (scipy)
 
 def scipy_matrix(an):
-    """D of the non-rattlers as a scipy CSR matrix (the same blocks as parjam.hessian)."""
+    """D of the non-rattlers as a scipy CSR matrix (the same blocks as parjam.vib.hessian)."""
     import numpy as np
     import scipy.sparse as sp
 
-    from parjam import hessian
+    from parjam.vib import hessian
 
     brow, bcol, bvals = hessian.half_edge_block_csr(an.n, 0, an.n, an.pi, an.pj, an.blocks)
     return sp.bsr_matrix((bvals, bcol, np.searchsorted(brow, np.arange(an.n + 1))),
@@ -87,9 +89,11 @@ def baseline(path):
     import numpy as np
     import scipy.sparse.linalg as spl
 
-    from parjam import env, io, moduli
+    from parjam import env
+    from parjam.files import h5md
+    from parjam.vib import moduli
 
-    pack = io.read_packing(path)
+    pack = h5md.read_packing(path)
     rss0 = peak_rss_mb()
     t0 = time.perf_counter()
     an = moduli.active_network(pack, env.petsc().COMM_SELF)  # every half-edge here

@@ -41,7 +41,7 @@ from tile_packing import weak_point  # noqa: E402
 # name -> options of ``parjam moduli`` given P (the PC on the solver's own prefix ``moduli_``)
 CONFIGS = {
     # parjam's default: MUMPS Cholesky on one rank, block Jacobi (PCASM, no overlap) + ICC(0)
-    # on several (parjam.moduli.response_solver)
+    # on several (parjam.vib.moduli.response_solver)
     "default": lambda p: [],
     "bjacobi + ICC(0)": lambda p: ["-moduli_pc_type", "bjacobi", "-moduli_sub_pc_type", "icc"],
     "GAMG": lambda p: ["-moduli_pc_type", "gamg"],

@@ -96,10 +96,10 @@ def parjam_cmd(ranks, args):
 
 
 def read_params(path):
-    from parjam import io
+    from parjam.files import h5md
 
     with h5py.File(path) as f:
-        return dict(f["parameters"].attrs), float(io.observable(f, "max_force"))
+        return dict(f["parameters"].attrs), float(h5md.observable(f, "max_force"))
 
 
 def main():
@@ -140,7 +140,7 @@ def main():
     if not a.skip_baseline:
         code = (f"import sys; sys.path.insert(0, {ROOT!r}); sys.path.insert(0, {os.path.dirname(__file__)!r});"
                 f"import numpy as np, bench_pack as b, time, json;"
-                f"from parjam.packing import random_packing; from parjam.packing import member_rng;"
+                f"from parjam.pack.packing import random_packing; from parjam.pack.packing import member_rng;"
                 f"p = random_packing(3, {a.n}, 0.66, 2.0, 'mono', 1.4, member_rng({a.seed}, 0));"
                 f"p = p.rescaled({phi_q!r}); t = time.time();"
                 f"x, steps = b.plain_fire(p.pos, p.diam, p.L, 1e-12);"

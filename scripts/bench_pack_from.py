@@ -2,7 +2,7 @@
 """Peak memory per rank of the start of ``parjam pack --from FILE`` (issue 18, session 14): main's
 whole-file start (OLD: ``io.read_packing`` of all N particles on every rank to describe the file,
 then ``importer.from_file`` of all N on every rank and ``Jammer(comm, pack)``) against the start
-by rows (NEW: ``parjam.filestart.describe`` and ``filestart.start_rows``, each rank reading only
+by rows (NEW: ``parjam.pack.filestart.describe`` and ``filestart.start_rows``, each rank reading only
 its block of rows, then ``Jammer(comm, rows)``), side by side in one run, at P = 1, 2, 4 ranks
 (oversubscribed on a small machine: that changes the times, not the memory).  Run by hand,
 never in the test suite:
@@ -36,7 +36,7 @@ WORKER = """
 import hashlib, json, resource, sys, time
 from types import SimpleNamespace
 from parjam import env
-from parjam.packing import Jammer
+from parjam.pack.packing import Jammer
 PETSc = env.petsc()
 comm = PETSc.COMM_WORLD
 mb = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -44,14 +44,14 @@ path, variant = sys.argv[1], sys.argv[2]
 before = mb()
 t0 = time.perf_counter()
 if variant == "old":  # main's pack --from: the whole file on every rank, twice
-    from parjam.importer import from_file
-    from parjam.io import read_packing
+    from parjam.files.importer import from_file
+    from parjam.files.h5md import read_packing
     whole = read_packing(path)
     phi = whole.phi
     del whole
     start = from_file(path, 2.0)
 else:
-    from parjam import filestart
+    from parjam.pack import filestart
     phi = filestart.describe(comm, path).phi
     start = filestart.start_rows(comm, path, 2.0, phi)
 jam = Jammer(comm, start)

@@ -54,9 +54,9 @@ def peak_rss(tree, ranks, n, dphi, seed, out):
 
 WORKER = """
 import json, resource, sys
-from parjam import env, stability  # the tree on PYTHONPATH, before tile_packing's path
-from parjam.io import read_packing
-from parjam.packing import Jammer
+from parjam import env; from parjam.pack import stability  # the tree on PYTHONPATH, before tile_packing's path
+from parjam.files.h5md import read_packing
+from parjam.pack.packing import Jammer
 sys.path.insert(0, sys.argv[3])
 from tile_packing import tiled
 PETSc = env.petsc()
@@ -70,7 +70,7 @@ if hasattr(jam, "network"):  # this tree: on the slabs
     net = jam.network()
     H = stability.active_hessian(net)
 else:  # main: the whole packing analysed on every rank
-    from parjam.network import analyze
+    from parjam.net.network import analyze
     net = analyze(jam.pack)
     H = stability.active_hessian(jam.pack, net)
 A = H.matrix(comm)

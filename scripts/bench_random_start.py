@@ -33,7 +33,7 @@ from peak_rss import measured  # noqa: E402
 WORKER = """
 import hashlib, json, resource, sys, time
 from parjam import env
-from parjam.packing import Jammer
+from parjam.pack.packing import Jammer
 PETSc = env.petsc()
 comm = PETSc.COMM_WORLD
 mb = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -42,9 +42,9 @@ args = (3, n, 0.66, 2.0, "poly", 1.4)
 before = mb()
 t0 = time.perf_counter()
 try:  # this tree: the block rows of the start
-    from parjam.randomstart import member_rng, start_rows
+    from parjam.pack.randomstart import member_rng, start_rows
 except ImportError:  # main: the whole start on every rank
-    from parjam.packing import member_rng, random_packing
+    from parjam.pack.packing import member_rng, random_packing
     start = random_packing(*args, rng=member_rng(seed, 0))
 else:
     start = start_rows(comm, *args, rng=member_rng(seed, 0))

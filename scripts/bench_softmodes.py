@@ -97,11 +97,11 @@ def read_result(out):
 DENSE = r"""
 import json, resource, sys, time
 import numpy as np
-from parjam import env, io, softmodes as sm
+from parjam import env, softmodes as sm; from parjam.files import h5md
 from parjam.testing import softmodes_reference as ref
 env.init()
 path, basis_file = sys.argv[1], sys.argv[2]
-pack = io.read_packing(path)
+pack = h5md.read_packing(path)
 cs = sm.prepare(pack, [sm.Plane(0, 0.5)], allow_hyperstatic=True).gathered()  # one rank
 t0 = time.perf_counter()
 S = ref.dense_rigidity(cs, cs.kept)

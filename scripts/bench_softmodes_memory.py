@@ -41,7 +41,7 @@ import json, resource, sys, time
 import numpy as np
 variant, path, columns, olddir, scratchdir = sys.argv[1:4] + sys.argv[4:6]
 columns = int(columns)
-from parjam import env, io
+from parjam import env; from parjam.files import h5md
 PETSc = env.petsc()
 comm = PETSc.COMM_WORLD
 if variant == "old":
@@ -49,7 +49,7 @@ if variant == "old":
     import old_softmodes as sm
 else:
     from parjam import softmodes as sm
-pack = io.read_packing(path)
+pack = h5md.read_packing(path)
 cs = sm.prepare(pack, [sm.Plane(0, 0.5)], allow_hyperstatic=True)
 def maxrss():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -102,14 +102,14 @@ def tiled(src, n):
         return path
     code = f"""
 import itertools, numpy as np
-from parjam import env, io, network
-from parjam.system import Packing
-p = io.read_packing({src!r})
+from parjam import env; from parjam.files import h5md; from parjam.net import network
+from parjam.net.system import Packing
+p = h5md.read_packing({src!r})
 shifts = np.array(list(itertools.product((0, 1), repeat=p.d)), float) * p.L
 pos = np.concatenate([p.pos + s for s in shifts])
 big = Packing(pos, np.tile(p.diam, len(shifts)), 2 * p.L, p.alpha, p.eps)
 assert big.n == {n}
-io.write_packing({path!r}, big, network.analyze(big), {{}})
+h5md.write_packing({path!r}, big, network.analyze(big), {{}})
 """
     subprocess.run([PYTHON, "-c", code], check=True, cwd=ROOT)
     return path

@@ -51,12 +51,12 @@ def rss():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 t0 = time.perf_counter()
 if code == "old":
-    from parjam import io
-    pack = io.read_packing(path)
+    from parjam.files import h5md
+    pack = h5md.read_packing(path)
     cs = sm.prepare(pack, [sm.Plane(0, 0.5)], allow_hyperstatic=True)
     n_local = None
 else:
-    from parjam import rowio
+    from parjam.files import rowio
     net = rowio.network(comm, path)
     cs = sm.prepare(None, [sm.Plane(0, 0.5)], allow_hyperstatic=True, net=net)
     n_local = cs.n_local
@@ -117,7 +117,7 @@ def page(res, ranks, per_rank, made, base):
         "`parjam softmodes` (inertia count, null basis by block inverse iteration in 64-column "
         "blocks, Eq. 3 check, extension, f(x), trial modes, variational count), no output "
         f"file. `old` is main at {base} (the whole packing read and cut on every rank), `new` "
-        "this branch (the cut system on parjam.active, each rank reading its own rows). "
+        "this branch (the cut system on parjam.net.active, each rank reading its own rows). "
         "Ranks oversubscribed on a 2-core machine shared with other jobs: times are "
         "indicative only. Memory is the peak resident set (getrusage ru_maxrss, MB) of each "
         "rank: `before` after the cut system is made, `count` after the MUMPS inertia "

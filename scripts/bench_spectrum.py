@@ -48,10 +48,11 @@ def emit(record):
 
 # --- workers ---------------------------------------------------------------------------------------
 def load_system(path):
-    from parjam import io, spectrum
+    from parjam.files import h5md
+    from parjam.vib import spectrum
 
     t0 = time.perf_counter()
-    system = spectrum.active_system(io.read_packing(path))
+    system = spectrum.active_system(h5md.read_packing(path))
     return system, time.perf_counter() - t0
 
 
@@ -61,7 +62,7 @@ def worker_parjam(args, petsc_args):
     env.init(petsc_args)
     PETSc = env.petsc()
     PETSc.Log.begin()
-    from parjam import spectrum
+    from parjam.vib import spectrum
 
     comm = PETSc.COMM_WORLD
     mpi = comm.tompi4py()
@@ -131,7 +132,7 @@ def worker_scipy(args):
     import scipy.sparse as sp
     import scipy.sparse.linalg as sla
 
-    from parjam import spectrum
+    from parjam.vib import spectrum
 
     system, t_load = load_system(args.file)
     H = scipy_hessian(system)
@@ -159,7 +160,7 @@ def worker_scipy(args):
 
 def worker_dense(args):
     cap_memory(args.mem_limit_gb)
-    from parjam import spectrum
+    from parjam.vib import spectrum
 
     system, t_load = load_system(args.file)
     H = spectrum.dense_matrix(system, "full")

@@ -16,7 +16,7 @@ Stages (each one process, serial, OMP/BLAS threads = 1 for fair timings):
   largest relative eigenvalue error against dense.
 - ``dos``: D(omega) of the full matrix by dense LAPACK (numpy eigvalsh of the deflated matrix;
   the truth), by spectrum slicing of the lowest 10 % (parjam ``slice``) and by KPM
-  (parjam.kpm) for moments x probes on a grid.  KPM costs are measured once for the largest
+  (parjam.vib.kpm) for moments x probes on a grid.  KPM costs are measured once for the largest
   moments x probes (the moments of fewer moments and of the first probes are exactly those of
   a shorter run with the same seed) and the time of each point is assembly + bounds + (its
   share of the measured moment time); two points are also timed directly to check that model.  Metrics:
@@ -47,14 +47,15 @@ sys.path.insert(0, ROOT)
 
 
 def load(path):
-    from parjam import io, spectrum
+    from parjam.files import h5md
+    from parjam.vib import spectrum
 
-    return spectrum.active_system(io.read_packing(path))
+    return spectrum.active_system(h5md.read_packing(path))
 
 
 def dense_truth(system, cache):
     """All eigenvalues of the full matrix (translations deflated) and the time it took."""
-    from parjam import spectrum
+    from parjam.vib import spectrum
 
     if cache and os.path.exists(cache):
         z = np.load(cache)
@@ -82,7 +83,8 @@ FACTORS = {  # name: (matrix type, PC type, package, extra options)
 
 
 def run_sinvert(system, k, tol, ncv=None, factor="mumps-cholesky", mpd=None):
-    from parjam import env, spectrum, translations
+    from parjam import env
+    from parjam.vib import spectrum, translations
 
     PETSc, SLEPc = env.petsc(), env.slepc()
     comm = PETSc.COMM_WORLD
@@ -162,7 +164,7 @@ def stage_eig(paths, k, cache_dir, log, repeat=2, knobs=("tol", "ncv", "factor",
         system = load(path)
         truth, t_dense = dense_truth(system, cache_path(cache_dir, path))
         ref = truth[:k]
-        from parjam import spectrum
+        from parjam.vib import spectrum
 
         norm = float(np.abs(spectrum.dense_matrix(system, "full")).sum(axis=1).max())
         log(f"eig: {path}: N' = {system.n}, dense {t_dense:.1f} s")
@@ -218,7 +220,8 @@ def dos_metrics(omega_lam_edges, density, d0, wstar, truth):
 
 
 def stage_dos(paths, moments, probes, cache_dir, log, bins=40):
-    from parjam import env, kpm, observables, spectrum
+    from parjam import env
+    from parjam.vib import kpm, observables, spectrum
 
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
@@ -282,7 +285,7 @@ def stage_dos(paths, moments, probes, cache_dir, log, bins=40):
 
 def _time_bounds(comm, system):
     """The fixed cost of a KPM run: assembly of the matrix and the Lanczos bounds."""
-    from parjam import kpm, spectrum
+    from parjam.vib import kpm, spectrum
 
     t0 = time.perf_counter()
     A = spectrum.dynamical_matrix(comm, system, "full")
@@ -296,7 +299,8 @@ def _time_bounds(comm, system):
 def stage_auto(paths, log, repeat=2):
     """spectrum.compute by dense and by sinvert for a few k at each size (what auto chooses
     between), timed as the command runs them (observables included), best of ``repeat``."""
-    from parjam import env, spectrum
+    from parjam import env
+    from parjam.vib import spectrum
 
     comm = env.petsc().COMM_SELF
     rows = []
@@ -324,11 +328,14 @@ def stage_auto(paths, log, repeat=2):
 
 # --- minimisation tolerance -----------------------------------------------------------------------
 def stage_ftol(phic_path, dphis, ftols, k, log):
-    from parjam import env, io, network, spectrum
-    from parjam.packing import JamSettings, Jammer
+    from parjam import env
+    from parjam.files import h5md
+    from parjam.net import network
+    from parjam.vib import spectrum
+    from parjam.pack.packing import JamSettings, Jammer
 
     PETSc = env.petsc()
-    base = io.read_packing(phic_path)
+    base = h5md.read_packing(phic_path)
     phi_c = base.phi
     rows = []
     for dphi in dphis:

@@ -7,9 +7,9 @@ checked where the whole spectrum is affordable.
         --moments 2048 --probes 8 --k-fraction 0.033 --json out.json --md table.md
 
 For each state and matrix (full, relaxed): the dense eigenvalues (the truth), then with the
-scene's KPM settings (parjam.kpm_dos, the same code as ``parjam run``):
+scene's KPM settings (parjam.vib.kpm_dos, the same code as ``parjam run``):
 - L1 distance of the per-mode D(omega) on 40 bins, and the relative error of D0;
-- omega* of KPM (NaN when parjam.kpm_dos calls it unresolved) against dense;
+- omega* of KPM (NaN when parjam.vib.kpm_dos calls it unresolved) against dense;
 - omega* of the lowest ``k-fraction`` of the modes with the KPM D0 (the partial-spectrum
   estimator of omega_AM and omega*_relaxed at N = 10240) against dense.
 Serial, one process; nothing is written but --json and --md.
@@ -25,7 +25,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from parjam import env, io, kpm, kpm_dos, observables, spectrum  # noqa: E402
+from parjam import env
+from parjam.files import h5md
+from parjam.vib import kpm, kpm_dos, observables, spectrum
 
 
 def dense_frequencies(system, kind):
@@ -36,7 +38,7 @@ def dense_frequencies(system, kind):
 
 def check(path, kind, moments, probes, max_moments, k_fraction, bins=40):
     comm = env.petsc().COMM_SELF
-    system = spectrum.active_system(io.read_packing(path))
+    system = spectrum.active_system(h5md.read_packing(path))
     w = dense_frequencies(system, kind)
     pos = w[w > 0]
     d0, wstar, _ = observables.dos_summary(pos, system.n_modes)
@@ -57,9 +59,9 @@ def check(path, kind, moments, probes, max_moments, k_fraction, bins=40):
 
 def calibrate(path, kind, probes, grid=(256, 512, 1024, 2048, 4096, 8192)):
     """KPM omega* at fixed moments against dense: the ratio omega*_KPM / Delta omega and the
-    relative error, the data behind parjam.kpm_dos.RESOLVED."""
+    relative error, the data behind parjam.vib.kpm_dos.RESOLVED."""
     comm = env.petsc().COMM_SELF
-    system = spectrum.active_system(io.read_packing(path))
+    system = spectrum.active_system(h5md.read_packing(path))
     w = dense_frequencies(system, kind)
     _, wstar, _ = observables.dos_summary(w[w > 0], system.n_modes)
     out = []

@@ -31,8 +31,8 @@ import numpy as np
 
 def member(d, n, seed, m, dphis, alpha):
     from parjam import env
-    from parjam.network import analyze
-    from parjam.packing import Jammer, LadderUnjammed, member_rng, random_packing
+    from parjam.net.network import analyze
+    from parjam.pack.packing import Jammer, LadderUnjammed, member_rng, random_packing
 
     PETSc = env.petsc()
     disp = "bi" if d == 2 else "mono"
@@ -201,8 +201,8 @@ def report(paths, img):
 
 
 def virial_off(s):
-    """The state's own virial dphi disagrees with its label (parjam.ensemble.virial_flags)."""
-    from parjam.ensemble import virial_tolerance
+    """The state's own virial dphi disagrees with its label (parjam.pack.ensemble.virial_flags)."""
+    from parjam.pack.ensemble import virial_tolerance
 
     x, v = s["dphi_label"], s.get("dphi_virial", np.nan)
     return bool(np.isfinite(v) and abs(v - x) > virial_tolerance(x) * x)
@@ -212,7 +212,7 @@ def census_files(paths):
     """Census table (stability found -> after, Nc - Nc_iso) from written packing files."""
     import h5py
 
-    from parjam import io
+    from parjam.files import h5md
 
     rows = {}
     for path in paths:
@@ -220,7 +220,7 @@ def census_files(paths):
             o, par = f["observables"], f["parameters"].attrs
             state = par["state"]
             state = state.decode() if isinstance(state, bytes) else str(state)
-            rows.setdefault(state, []).append({k: io.observable(f, k) for k in (
+            rows.setdefault(state, []).append({k: h5md.observable(f, k) for k in (
                 "excess", "stable", "negative_curvatures_found", "excess_found", "escapes",
                 "cycles", "dphi_virial_ok", "max_force_rel", "pressure", "N_active") if k in o} | {
                     "member": int(par["member"]), "seconds": float(par["seconds"])})

@@ -27,7 +27,7 @@ restate them.
 Every step is skipped when its output exists (a rerun resumes); costs go to
 DIR/N{N}/costs.json.  ``collect`` reads every cut file (never recomputes) and writes per member:
 f(x), c, q'/q on the e0 ladder, mean extension, omega_t^2, mean modulated energy, costs; per N
-and geometry: means with bootstrap errors over members (parjam.fits); and the fits against L
+and geometry: means with bootstrap errors over members (parjam.study.fits); and the fits against L
 (trial energies ~ L^b, c ~ L^b), with the variational bound q'/q >= (c/2 - e0)/(1 - e0)
 evaluated (section 12 of docs/reproduction.md says what each number means).
 """
@@ -45,7 +45,9 @@ import time
 import h5py
 import numpy as np
 
-from parjam import env, fits, io, softmodes as sm
+from parjam import env, softmodes as sm
+from parjam.files import h5md
+from parjam.study import fits
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "scripts"))
@@ -71,7 +73,7 @@ def member_file(packdir, m):
 def excess_of(path):
     """Nc - Nc_iso of the non-rattlers of a packing (serial)."""
     env.init()
-    pack = io.read_packing(path)
+    pack = h5md.read_packing(path)
     cs = sm.prepare(pack, [sm.Plane(0, 0.5)], allow_hyperstatic=True)
     return int(cs.excess), int(cs.n)
 
@@ -258,11 +260,11 @@ def read_cut(path):
 
 
 def box_edge(path):
-    return float(io.read_packing(path).L)
+    return float(h5md.read_packing(path).L)
 
 
 def mean_err(values, n_boot=2000, seed=0):
-    """Mean over members and its bootstrap error (parjam.fits.bootstrap)."""
+    """Mean over members and its bootstrap error (parjam.study.fits.bootstrap)."""
     v = np.asarray(values, float)
     if len(v) < 2:
         return np.mean(v, axis=0).tolist(), np.full(np.shape(v)[1:], np.nan).tolist()

@@ -8,7 +8,7 @@ exponents and bootstrap errors over members.  Run by hand (results in docs/modul
     nice -n 10 .venv/bin/python scripts/moduli_scaling.py --files DIR/member*_dphi*.h5 \
         --lengths --lstar --out bench-out/lengths_d3.json
 
-Packings are made with parjam.packing.make_jammed (seed, member as in ``parjam pack``); under
+Packings are made with parjam.pack.packing.make_jammed (seed, member as in ``parjam pack``); under
 mpirun the members are spread over the ranks (each on COMM_SELF).  Expected (O'Hern et al.
 2003; Wyart et al. 2005): B ~ dphi^(alpha-2), G ~ dphi^(alpha-3/2), G/B ~ dphi^(1/2), and in
 dz: omega* ~ dz, c_T ~ dz^(alpha-3/2) (dz ~ dphi^(1/2)), l_T ~ c_T/omega*, l_L ~ 1/dz,
@@ -30,8 +30,9 @@ sys.path.insert(0, ROOT)
 
 
 def record(pack, comm, lengths_too, lstar_too, extra):
-    from parjam import lengths, moduli
-    from parjam.network import analyze
+    from parjam import lengths
+    from parjam.vib import moduli
+    from parjam.net.network import analyze
 
     net = analyze(pack)
     mod = moduli.compute(pack, comm)
@@ -58,7 +59,7 @@ def record(pack, comm, lengths_too, lstar_too, extra):
 def ensemble(args, comm_world):
     from parjam import env
     from parjam.errors import UnjammedError
-    from parjam.packing import make_jammed
+    from parjam.pack.packing import make_jammed
 
     SELF = env.petsc().COMM_SELF
     rank, size = comm_world.Get_rank(), comm_world.Get_size()
@@ -82,7 +83,8 @@ def ensemble(args, comm_world):
 
 
 def from_files(args, comm_world):
-    from parjam import env, io
+    from parjam import env
+    from parjam.files import h5md
 
     SELF = env.petsc().COMM_SELF
     rank, size = comm_world.Get_rank(), comm_world.Get_size()
@@ -90,7 +92,7 @@ def from_files(args, comm_world):
     for k, path in enumerate(sorted(args.files)):
         if k % size != rank:
             continue
-        pack = io.read_packing(path)
+        pack = h5md.read_packing(path)
         m = re.search(r"dphi([0-9.e+-]+)\.h5$", path)
         dphi = float(m.group(1)) if m else float("nan")
         member = os.path.dirname(os.path.abspath(path))
@@ -112,8 +114,8 @@ def table(rows, key, xs, members):
 
 
 def power_law_fit(x, Y):
-    """(exponent, bootstrap error) of mean(Y) ~ x^s over members (parjam.fits.fit_power)."""
-    from parjam.fits import fit_power
+    """(exponent, bootstrap error) of mean(Y) ~ x^s over members (parjam.study.fits.fit_power)."""
+    from parjam.study.fits import fit_power
 
     f = fit_power(x, Y)
     return f["exponent"], f["exponent_err"]

@@ -27,10 +27,10 @@ DEFAULT_JSON = os.path.join(ROOT, "bench-out", "pack-steps.jsonl")
 
 
 class Recorder:
-    """Wraps parjam.minimize's fire/newton/minimise to log every round of every minimisation."""
+    """Wraps parjam.pack.minimize's fire/newton/minimise to log every round of every minimisation."""
 
     def __init__(self):
-        from parjam import minimize
+        from parjam.pack import minimize
 
         self.mod = minimize
         self.orig = (minimize.fire, minimize.newton, minimize.minimize)
@@ -66,15 +66,16 @@ class Recorder:
 
 
 def run_one(n, seed, dphi, phi_start, dim=3, dispersity="mono", tail_dof=None, variant=None):
-    from parjam import env, minimize
-    from parjam import fire as fire_mod
+    from parjam import env
+    from parjam.pack import minimize
+    from parjam.pack import fire as fire_mod
 
-    if variant is not None:  # A/B of the FIRE variants (parjam.fire.DEFAULT_VARIANT)
+    if variant is not None:  # A/B of the FIRE variants (parjam.pack.fire.DEFAULT_VARIANT)
         fire_mod.DEFAULT_VARIANT = variant
 
     PETSc = env.petsc()
-    from parjam.packing import member_rng
-    from parjam.packing import Jammer, random_packing
+    from parjam.pack.packing import member_rng
+    from parjam.pack.packing import Jammer, random_packing
 
     if tail_dof is not None:  # A/B of FIRE's tail against Newton's (minimize.FIRE_TAIL_DOF)
         minimize.FIRE_TAIL_DOF = tail_dof
@@ -170,7 +171,7 @@ def main():
     ap.add_argument("--fire-tail-dof", type=int, default=None,
                     help="override minimize.FIRE_TAIL_DOF (e.g. 10**9: Newton's tail at every N)")
     ap.add_argument("--fire", default=None, choices=("fire", "fire2"),
-                    help="FIRE variant (default: parjam.fire.DEFAULT_VARIANT)")
+                    help="FIRE variant (default: parjam.pack.fire.DEFAULT_VARIANT)")
     ap.add_argument("--json", default=DEFAULT_JSON)
     ap.add_argument("--report", action="store_true", help="only summarise --json")
     ap.add_argument("--compare", action="store_true",

@@ -6,7 +6,7 @@ modes, which is fine for memory and time measurements, not for physics at long w
 
     .venv/bin/python scripts/tile_packing.py SMALL.h5 K OUT.h5
 
-Writes OUT.h5 in the layout of docs/file-format.md (parjam.io.write_packing, one rank), with
+Writes OUT.h5 in the layout of docs/file-format.md (parjam.files.h5md.write_packing, one rank), with
 the /parameters of the small file and ``tiled_from``/``tiles`` added.
 """
 
@@ -19,10 +19,10 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from parjam import io  # noqa: E402
+from parjam.files import h5md
 from parjam.errors import ParjamError  # noqa: E402
-from parjam.network import analyze  # noqa: E402
-from parjam.system import Packing  # noqa: E402
+from parjam.net.network import analyze  # noqa: E402
+from parjam.net.system import Packing  # noqa: E402
 
 
 def tiled(pack, k):
@@ -45,7 +45,7 @@ def main(argv=None):
         print(f"tile_packing: k must be >= 1, got {args.k}", file=sys.stderr)
         return 2
     try:
-        small = io.read_packing(args.packing)
+        small = h5md.read_packing(args.packing)
     except ParjamError as exc:
         print(f"tile_packing: {exc}", file=sys.stderr)
         return 2
@@ -53,7 +53,7 @@ def main(argv=None):
     net = analyze(big)
     params = {key: val for key, val in big.meta.items() if key != "species"}
     params.update(tiled_from=os.path.abspath(args.packing), tiles=args.k)
-    io.write_packing(args.out, big, net, params)
+    h5md.write_packing(args.out, big, net, params)
     print(f"{args.out}: N = {big.n} ({args.k}^{big.d} x {small.n}), L = {big.L:.6g}, "
           f"z = {net.z:.4f}, p = {net.pressure:.4e}")
     return 0

@@ -51,12 +51,23 @@ def subprocess_env(**extra):
     return env
 
 
+def find_test(test_file):
+    """The path of a test file of tests/ given by its name (test files are in one folder per
+    package, and their names are unique)."""
+    import glob
+
+    found = glob.glob(os.path.join(ROOT, "tests", "**", test_file), recursive=True)
+    if len(found) != 1:
+        raise FileNotFoundError(f"{test_file}: {len(found)} test files of that name in tests/")
+    return found[0]
+
+
 def run_on_ranks(test_file, ranks, *pytest_args, timeout=600):
     """Run a test file of tests/ under ``$PARJAM_MPIRUN -n ranks`` (for the partition cases the
     2-rank suite cannot make); returns the CompletedProcess, output captured."""
     mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
     return subprocess.run(mpirun + ["-n", str(ranks), sys.executable, "-m",
                                     "parjam.testing.mpi_pytest", "-q", "-p", "no:cacheprovider",
-                                    *pytest_args, os.path.join(ROOT, "tests", test_file)],
+                                    *pytest_args, find_test(test_file)],
                           cwd=ROOT, env=subprocess_env(), capture_output=True, text=True,
                           timeout=timeout)

@@ -1,6 +1,6 @@
 """``parjam analyze``: the contact-network summary of packing files."""
 
-from parjam import outputs
+from parjam.files import outputs
 
 
 def add_parser(sub):
@@ -17,10 +17,10 @@ def add_parser(sub):
 def run(args):
     from mpi4py import MPI
 
-    from parjam import rowio
+    from parjam.files import rowio
 
     rank = MPI.COMM_WORLD.Get_rank()
-    for path in args.files:  # each rank reads its rows; the network is distributed (parjam.active)
+    for path in args.files:  # each rank reads its rows; the network is distributed (parjam.net.active)
         net = rowio.network(MPI.COMM_WORLD, path)
         if rank != 0:
             continue

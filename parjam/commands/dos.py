@@ -6,7 +6,7 @@ import numpy as np
 
 from parjam.commands import parse_pair
 from parjam.errors import ParjamError
-from parjam.spectrum import MATRICES
+from parjam.vib.spectrum import MATRICES
 
 
 def add_parser(sub):
@@ -68,7 +68,7 @@ def check_sizes(args):
 def check_duplicates(paths):
     """The same file twice (by path, link or identical content) would fake an ensemble with a
     zero error bar."""
-    from parjam import io, outputs
+    from parjam.files import h5md, outputs
 
     digests = {}
     for k, path in enumerate(paths):
@@ -77,7 +77,7 @@ def check_duplicates(paths):
                 raise ParjamError(f"{path} and {other} are the same file: each input must be "
                                   f"a different member")
         try:
-            digest = io.sha256(path)
+            digest = h5md.sha256(path)
         except OSError:
             continue  # unreadable: the reader says why
         if digest in digests:
@@ -116,7 +116,7 @@ def check_defined(paths, d0s, stars, plateau):
 
 def ensemble(specs, bins, log, omega_min, plateau):
     """Per-file D(omega) on common edges, D0 and omega*; their means and standard errors."""
-    from parjam import observables
+    from parjam.vib import observables
 
     kinds = {s["attrs"]["matrix"] for s in specs}
     if len(kinds) != 1:
@@ -143,7 +143,9 @@ def ensemble(specs, bins, log, omega_min, plateau):
 
 
 def run(args):
-    from parjam import env, io, modes_io, observables, outputs
+    from parjam import env
+    from parjam.files import h5md, modes_io, outputs
+    from parjam.vib import observables
 
     PETSc = env.petsc()
     check_sizes(args)
@@ -169,7 +171,7 @@ def run(args):
            "D0_error": float(d0_err[0]), "omega_star": float(ws[0]),
            "omega_star_error": float(ws_err[0]), "D0_each": res["D0_each"],
            "omega_star_each": res["omega_star_each"]}
-    prov = io.provenance(PETSc.COMM_WORLD.getSize(), {"command": "dos", "files": args.spectra})
+    prov = h5md.provenance(PETSc.COMM_WORLD.getSize(), {"command": "dos", "files": args.spectra})
     outputs.on_root(PETSc.COMM_WORLD, lambda: write(args, dos, prov, (
         f"{res['matrix']}: {len(specs)} spectra, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g}, "
         f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g}")))
@@ -177,11 +179,11 @@ def run(args):
 
 
 def write(args, dos, prov, line):
-    """Rank 0: the D(omega) file, the summary line and the figure (policy: parjam.outputs)."""
-    from parjam import io, modes_io, outputs
+    """Rank 0: the D(omega) file, the summary line and the figure (policy: parjam.files.outputs)."""
+    from parjam.files import h5md, modes_io, outputs
 
-    with io.atomic_h5(args.out) as f:
-        io.write_h5md_header(f, prov)
+    with h5md.atomic_h5(args.out) as f:
+        h5md.write_h5md_header(f, prov)
         modes_io.write_dos(f, dos)
     print(line, flush=True)
     if args.plot:
@@ -195,13 +197,14 @@ def write(args, dos, prov, line):
 def kpm_ensemble(comm, paths, args, plateau, progress):
     """KPM D(omega) of each packing on common bins (up to the lowest upper bound of the files),
     D0 and omega* each; mean and standard error over files (over probes for one file)."""
-    from parjam import kpm, observables, rowio, spectrum
+    from parjam.files import rowio
+    from parjam.vib import kpm, observables, spectrum
 
     bounds = parse_pair(args.kpm_bounds, "--kpm-bounds") if args.kpm_bounds else None
     rows = [rowio.read_rows(comm, path) for path in paths]  # all checked before any work
     check_same_system([(p, k.d, k.n, "") for p, k in zip(paths, rows)])
     results = []
-    for path, part in zip(paths, rows):  # this rank's rows only (parjam.active)
+    for path, part in zip(paths, rows):  # this rank's rows only (parjam.net.active)
         system = spectrum.distributed_system(rowio.network(comm, part))
         progress(f"{path}: N' = {system.n}, {system.n_contacts} contacts")
         results.append(kpm.compute(comm, system, args.matrix, args.moments, args.probes,
@@ -223,7 +226,9 @@ def kpm_ensemble(comm, paths, args, plateau, progress):
 
 
 def run_kpm(args, plateau):
-    from parjam import env, io, observables, outputs
+    from parjam import env
+    from parjam.files import h5md, outputs
+    from parjam.vib import observables
     from parjam.progress import Progress
 
     PETSc = env.petsc()
@@ -254,7 +259,7 @@ def run_kpm(args, plateau):
            "seconds": np.array([r.seconds for r in results]),
            "D0": float(d0[0]), "D0_error": float(d0_err[0]), "omega_star": float(ws[0]),
            "omega_star_error": float(ws_err[0]), "D0_each": d0s, "omega_star_each": stars}
-    prov = io.provenance(comm.getSize(), {"command": "dos", "files": args.spectra})
+    prov = h5md.provenance(comm.getSize(), {"command": "dos", "files": args.spectra})
     outputs.on_root(comm, lambda: write(args, dos, prov, (
         f"{args.matrix}: KPM ({args.moments} moments x {args.probes} probes) of "
         f"{len(results)} packings, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g}, "

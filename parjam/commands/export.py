@@ -12,9 +12,9 @@ def add_parser(sub):
 def run(args):
     from mpi4py import MPI
 
-    from parjam import outputs
-    from parjam.io import read_packing, write_extxyz
-    from parjam.network import analyze
+    from parjam.files import outputs
+    from parjam.files.h5md import read_packing, write_extxyz
+    from parjam.net.network import analyze
 
     out = args.out or os.path.splitext(args.file)[0] + ".xyz"
     outputs.check(MPI.COMM_WORLD, files=[("--out", out)], inputs=[args.file])

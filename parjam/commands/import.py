@@ -1,6 +1,6 @@
 """``parjam import``: a configuration made elsewhere (extended XYZ, LAMMPS data or dump, another
 program's H5MD) as a parjam packing file, which ``parjam pack --from`` minimises, brings to phi_c
-and compresses along a dphi ladder (parjam.importer)."""
+and compresses along a dphi ladder (parjam.files.importer)."""
 
 import os
 import sys
@@ -9,7 +9,7 @@ from parjam.errors import ParjamError
 
 
 def add_parser(sub):
-    from parjam.importer import FORMATS
+    from parjam.files.importer import FORMATS
 
     p = sub.add_parser(
         "import", help="bring in a packing made elsewhere (extended XYZ, LAMMPS, H5MD)",
@@ -42,8 +42,8 @@ def output_path(args):
 def run(args):
     from mpi4py import MPI
 
-    from parjam import importer, io, outputs
-    from parjam.network import analyze
+    from parjam.files import h5md, importer, outputs
+    from parjam.net.network import analyze
 
     out = output_path(args)
     outputs.check(MPI.COMM_WORLD, files=[("--out", out)], inputs=[args.file])
@@ -58,7 +58,7 @@ def run(args):
               "source_format": meta["source_format"], "length_scale": meta["length_scale"]}
 
     def write():
-        io.write_packing(out, pack, net, params, io.provenance(MPI.COMM_WORLD.Get_size()))
+        h5md.write_packing(out, pack, net, params, h5md.provenance(MPI.COMM_WORLD.Get_size()))
 
     outputs.on_root(MPI.COMM_WORLD, write)
     if MPI.COMM_WORLD.Get_rank() == 0:

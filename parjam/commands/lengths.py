@@ -1,6 +1,6 @@
 """``parjam lengths``: sound speeds c_L, c_T, the lengths l_L = c_L / omega*, l_T = c_T / omega*
 and l* (cut cubes), and the longitudinal/transverse structure factors of the eigenmodes
-(see parjam.lengths and parjam.structure).  Computes only what ``--what`` asks for."""
+(see parjam.lengths and parjam.vib.structure).  Computes only what ``--what`` asks for."""
 
 import os
 
@@ -107,7 +107,8 @@ def validate(args):
 
 
 def run(args):
-    from parjam import env, io, lengths, outputs, rowio
+    from parjam import env, lengths
+    from parjam.files import h5md, outputs, rowio
     from parjam.progress import Progress
 
     PETSc = env.petsc()
@@ -115,7 +116,7 @@ def run(args):
     what, edges, plateau = validate(args)
     outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
     progress = Progress(comm, args.quiet, "lengths: ")
-    rows = rowio.read_rows(comm, args.packing)  # this rank's rows only (parjam.rowio)
+    rows = rowio.read_rows(comm, args.packing)  # this rank's rows only (parjam.files.rowio)
     check_kmax(args.kmax, rows)
     res = lengths.compute(
         comm, rows, what, matrix=args.matrix, k=args.k, method=args.method, plateau=plateau,
@@ -123,9 +124,9 @@ def run(args):
         seed=args.seed, k_max=args.kmax, k_fit=args.kfit, smooth=args.smooth,
         progress=progress, e0=args.e0)
     if args.out:
-        prov = io.provenance(comm.getSize(), {
+        prov = h5md.provenance(comm.getSize(), {
             "command": "lengths", "input": os.path.abspath(args.packing),
-            "input_sha256": io.sha256(args.packing), "what": what})
+            "input_sha256": h5md.sha256(args.packing), "what": what})
         outputs.on_root(comm, lambda: lengths.write(args.out, res, prov))
     if comm.getRank() == 0:
         print_summary(res, args.out)

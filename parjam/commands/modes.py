@@ -5,7 +5,9 @@ import sys
 
 import numpy as np
 
-from parjam import env, io, modes_io, outputs, rowio, spectrum
+from parjam import env
+from parjam.files import h5md, modes_io, outputs, rowio
+from parjam.vib import spectrum
 from parjam.commands import parse_pair
 from parjam.errors import ParjamError
 from parjam.plot import spectra as plot_spectra
@@ -94,12 +96,12 @@ def run(args):
     outputs.check(comm, files=[("--out", p) for p in output_paths(args.out, args.matrix).values()]
                   + [("--plot", args.plot)], inputs=[args.packing])
     progress = Progress(comm.tompi4py(), args.quiet, "modes: ")
-    # this rank's rows of the file only (parjam.rowio), kept for the output's /particles/all
+    # this rank's rows of the file only (parjam.files.rowio), kept for the output's /particles/all
     rows = rowio.read_rows(comm, args.packing)
     system = spectrum.distributed_system(rowio.network(comm, rows))
     progress(f"N' = {system.n} non-rattlers ({system.n_rattlers} rattlers), "
              f"{system.n_contacts} contacts, d = {system.d}")
-    prov = io.provenance(comm.getSize(), {"command": "modes"})
+    prov = h5md.provenance(comm.getSize(), {"command": "modes"})
     paths = output_paths(args.out, args.matrix)
     code = 0
     written = {}

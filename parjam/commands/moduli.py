@@ -1,5 +1,5 @@
 """``parjam moduli``: bulk and shear moduli and the stiffness tensor of a packing by linear
-response (affine Born term minus the non-affine relaxation Xi^T D^+ Xi; see parjam.moduli)."""
+response (affine Born term minus the non-affine relaxation Xi^T D^+ Xi; see parjam.vib.moduli)."""
 
 import os
 
@@ -26,19 +26,21 @@ def add_parser(sub):
 
 
 def run(args):
-    from parjam import env, io, moduli, outputs, rowio
+    from parjam import env
+    from parjam.files import h5md, outputs, rowio
+    from parjam.vib import moduli
     from parjam.progress import Progress
 
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
     outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
     progress = Progress(comm, args.quiet, "moduli: ")
-    net = rowio.network(comm, args.packing)  # this rank's rows only (parjam.active)
+    net = rowio.network(comm, args.packing)  # this rank's rows only (parjam.net.active)
     mod = moduli.compute(comm=comm, progress=progress, net=net)
     if args.out:
-        prov = io.provenance(comm.getSize(), {
+        prov = h5md.provenance(comm.getSize(), {
             "command": "moduli", "input": os.path.abspath(args.packing),
-            "input_sha256": io.sha256(args.packing)})
+            "input_sha256": h5md.sha256(args.packing)})
         outputs.on_root(comm, lambda: moduli.write(args.out, mod, prov))
     if comm.getRank() == 0:
         print_summary(mod, args.out)

@@ -8,8 +8,8 @@ import sys
 import numpy as np
 
 from parjam.errors import ParjamError, UnjammedError
-from parjam.packing import DISPERSITIES
-from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DPHI, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
+from parjam.pack.packing import DISPERSITIES
+from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DPHI, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
                              DEFAULT_PHI_START, DEFAULT_RATIO, LADDERS, PHIC_METHODS,
                              PackingProtocol, check_tolerances)
 from parjam.ranks import member_groups
@@ -146,11 +146,11 @@ def fits_machine(args, world):
 
 def start_from_file(args):
     """--from FILE: d, N, phi_start and the dispersity label come from the file, read by rows
-    on every rank of the world (parjam.filestart.describe: no rank reads all N particles); each
+    on every rank of the world (parjam.pack.filestart.describe: no rank reads all N particles); each
     member's group reads its own rows again when it starts (filestart.start_rows)."""
     from parjam import env
-    from parjam.filestart import describe
-    from parjam.io import sha256
+    from parjam.pack.filestart import describe
+    from parjam.files.h5md import sha256
 
     if args.members != 1:
         raise ParjamError(f"--from starts one configuration: --members must be 1, got "
@@ -164,7 +164,7 @@ def start_from_file(args):
 def prepare_output(args, params):
     """World rank 0: make DIR, refuse other parameters, find the finished members, write the
     manifest.  Returns ({member: files} finished, [notes])."""
-    from parjam import manifest
+    from parjam.files import manifest
 
     try:
         os.makedirs(args.out, exist_ok=True)
@@ -192,7 +192,7 @@ def _terminate_handler(out):
     def handler(signum, frame):
         from mpi4py import MPI
 
-        from parjam import manifest
+        from parjam.files import manifest
 
         for directory in manifest.temporary_dirs(out):
             for path in glob.glob(os.path.join(directory, f".*.tmp{os.getpid()}")):
@@ -223,8 +223,9 @@ def run(args):
 
 def _run(args):
     validate(args)
-    from parjam import env, manifest, outputs
-    from parjam.ensemble import MemberIncomplete, pack_member, print_table, rows_from_files
+    from parjam import env
+    from parjam.files import manifest, outputs
+    from parjam.pack.ensemble import MemberIncomplete, pack_member, print_table, rows_from_files
     from parjam.progress import Progress, Relay
 
     PETSc = env.petsc()
@@ -271,7 +272,7 @@ def _run(args):
     all_rows = mpi.gather(rows, root=0)
     incomplete = mpi.gather(incomplete, root=0)
     if world.getRank() == 0:
-        from parjam import checkpoint
+        from parjam.pack import checkpoint
 
         checkpoint.remove_empty_directory(args.out)
         finished, _ = manifest.finished_members(args.out, params)

@@ -83,7 +83,7 @@ def classify(path):
     of KINDS; ParjamError for anything else."""
     import h5py
 
-    from parjam import modes_io
+    from parjam.files import modes_io
 
     if os.path.isdir(path):
         return "results"
@@ -157,8 +157,8 @@ def requested(args, names, where):
 
 
 def check_output(args, inputs):
-    """The output policy (parjam.outputs) for --out, --img and --json, before any drawing."""
-    from parjam import outputs
+    """The output policy (parjam.files.outputs) for --out, --img and --json, before any drawing."""
+    from parjam.files import outputs
 
     if args.out is not None and not args.out.lower().endswith(".png"):
         raise ParjamError(f"--out {args.out}: the name must end in .png")
@@ -195,7 +195,7 @@ def run(args):
                           f"{args.inputs[0]} is a {kind} file")
     try:
         return plot_results(args) if kind == "results" else plot_file(args, kind)
-    except ParjamError as exc:  # a failed write (parjam.outputs) on this rank, the only one
+    except ParjamError as exc:  # a failed write (parjam.files.outputs) on this rank, the only one
         raise ParjamError(str(exc)) from None  # drawing: the others learn it at the close
 
 
@@ -273,12 +273,12 @@ def plot_file(args, kind):
 
 def load(kind, paths):
     """What the figures of ``kind`` take: spectrum dicts, packing, JSON dicts, or the paths."""
-    from parjam import io, modes_io
+    from parjam.files import h5md, modes_io
 
     if kind == "spectrum":
         return [modes_io.read_spectrum(p) for p in paths]
     if kind == "packing":
-        pack = io.read_packing(paths[0])
+        pack = h5md.read_packing(paths[0])
         if pack.d != 2:
             raise ParjamError(f"{paths[0]}: softfig and figs draw 2D packings, this one is "
                               f"{pack.d}D")

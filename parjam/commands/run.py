@@ -18,7 +18,8 @@ ranks a group shares a member (distributed minimisation, distributed matrices).
 
 import os
 
-from parjam import env, outputs, resources
+from parjam import env, resources
+from parjam.files import outputs
 from parjam.progress import Progress, Relay
 from parjam.study import plan, scene as scene_mod
 from parjam.study.runner import Runner

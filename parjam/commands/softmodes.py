@@ -90,7 +90,8 @@ def peak_rss_mb(comm):
 
 def run(args):
     validate(args)
-    from parjam import env, io, outputs, rowio, softmodes as sm
+    from parjam import env, softmodes as sm
+    from parjam.files import h5md, outputs, rowio
     from parjam.progress import Progress
 
     PETSc = env.petsc()
@@ -99,7 +100,7 @@ def run(args):
     outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
     rows = rowio.read_rows(comm, args.packing)  # this rank's rows only, validated
     planes = planes_from(args, rows.d)
-    net = rowio.network(comm, rows)  # the distributed active network (parjam.active)
+    net = rowio.network(comm, rows)  # the distributed active network (parjam.net.active)
     cs = sm.prepare(None, planes, args.allow_hyperstatic, net=net)
     progress(f"N' = {cs.n} non-rattlers, Nc = {cs.n_contacts} ({cs.excess:+d} from "
              f"isostatic), q = {cs.q} cut contacts on {len(cs.planes)} plane(s)")
@@ -107,9 +108,9 @@ def run(args):
         res = sm.analyze(comm, cs, args.e0, args.bins, progress, args.basis, args.columns,
                          scratch)
         res.solver["peak_rss_mb"] = peak_rss_mb(comm)
-        prov = io.provenance(comm.getSize(), {
+        prov = h5md.provenance(comm.getSize(), {
             "command": "softmodes", "input": os.path.abspath(args.packing),
-            "input_sha256": io.sha256(args.packing) if comm.getRank() == 0 else "",
+            "input_sha256": h5md.sha256(args.packing) if comm.getRank() == 0 else "",
             "planes": [p.label for p in cs.planes], "e0": args.e0, "bins": args.bins,
             "basis": args.basis, "columns": args.columns,
             "out_of_core": args.scratch is not None,

@@ -1,8 +1,8 @@
 """Sound speeds and the length scales of Wyart, Silbert, Nagel & Witten, PRE 72, 051306 (2005),
 Section III and its discussion: l* ~ 1/dz (cut-plane argument), l_L = c_L / omega* and
-l_T = c_T / omega*, with the structure factors of the eigenmodes (parjam.structure).
+l_T = c_T / omega*, with the structure factors of the eigenmodes (parjam.vib.structure).
 
-One module per concept, all on the distributed active network (parjam.active):
+One module per concept, all on the distributed active network (parjam.net.active):
 
 - :mod:`.speeds` -- rho = N'/V, c_L, c_T, the Christoffel speeds, omega* and l_L, l_T;
 - :mod:`.sites` -- the network with the positions of each rank's own non-rattlers;

@@ -1,8 +1,8 @@
 """The whole ``parjam lengths`` analysis of one packing on the distributed active network
-(parjam.active, parjam.lengths.sites): the speeds from the moduli, omega* from the spectrum, the
+(parjam.net.active, parjam.lengths.sites): the speeds from the moduli, omega* from the spectrum, the
 acoustic lengths, l* from the cut cubes and the structure factors of the eigenmodes.  Only the
 parts asked for are computed; every part runs on the network's rows, no rank holds all N
-positions (the eigenvectors for the structure factors come from parjam.spectrum on rank 0 and
+positions (the eigenvectors for the structure factors come from parjam.vib.spectrum on rank 0 and
 are sent to the owners of their rows)."""
 
 from dataclasses import dataclass
@@ -10,9 +10,9 @@ from dataclasses import dataclass
 import numpy as np
 from mpi4py import MPI
 
-from parjam import moduli as moduli_mod
-from parjam import solver_choice, spectrum, structure
-from parjam.domain import send_rows
+from parjam.vib import moduli as moduli_mod
+from parjam.vib import solver_choice, spectrum, structure
+from parjam.net.domain import send_rows
 from parjam.errors import ParjamError
 from parjam.lengths.lstar import LstarResult, lstar
 from parjam.lengths.sites import build as build_sites
@@ -32,11 +32,11 @@ class Lengths:
     L: float
     z: float
     dz: float
-    moduli: object = None  # parjam.moduli.Moduli
-    spectrum: object = None  # parjam.spectrum.Spectrum (vectors dropped after use)
+    moduli: object = None  # parjam.vib.moduli.Moduli
+    spectrum: object = None  # parjam.vib.spectrum.Spectrum (vectors dropped after use)
     dos: tuple = None  # (D0, omega*, plateau window)
     lstar: LstarResult = None
-    structure: object = None  # parjam.structure.StructureFactor
+    structure: object = None  # parjam.vib.structure.StructureFactor
     structure_fit: dict = None
 
     @property
@@ -180,7 +180,7 @@ def owned_vectors(comm, spec, ids):
 
 def structure_part(comm, sites, res, *, k_max, k_fit, smooth, log):
     """F_L, F_T summed over each rank's owned non-rattlers (their eigenvector rows, where
-    parjam.spectrum leaves them or sent from rank 0 after a dense solve), one allreduce per block of wavevectors; the
+    parjam.vib.spectrum leaves them or sent from rank 0 after a dense solve), one allreduce per block of wavevectors; the
     result is the same on every rank."""
     spec = res.spectrum
     k_fit = k_fit or 1.5 * 2.0 * np.pi / sites.L  # the two smallest shells, |m|^2 = 1, 2

@@ -27,7 +27,8 @@ import scipy.linalg
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from parjam import hessian, softmodes
+from parjam import softmodes
+from parjam.vib import hessian
 
 EXTENDED_MAX_DOF = 2400  # dense null-space bases of cube cores up to this size
 INERTIA_PREFIX = "lengths_inertia_"  # options of the cube counts' MUMPS factorisations

@@ -18,8 +18,8 @@ Distribution.  The cube corners are drawn from ``seed`` identically on every ran
 members of every cube are counted first (one allreduce of a count per cube).  A cube of at most
 N'/P members (``whole_above``) is counted on one rank, cube after cube in rounds of P: in each
 round every rank finds which of its owned non-rattlers (parjam.lengths.sites) lie in each cube
-of the round and sends them, and the half-edges leaving them (parjam.active), to the cube's rank
-with one ``parjam.domain.send_rows`` each; the rank counts it on COMM_SELF
+of the round and sends them, and the half-edges leaving them (parjam.net.active), to the cube's rank
+with one ``parjam.net.domain.send_rows`` each; the rank counts it on COMM_SELF
 (parjam.lengths.cubes).  A larger cube, which would at least double its rank's share of the
 packing (the default edges reach L: the whole packing), is counted by all the ranks together
 with its members staying where they are (parjam.lengths.whole: distributed pruning and pieces,
@@ -33,13 +33,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from parjam import env, potential
-from parjam.domain import as_mpi, send_rows
+from parjam import env
+from parjam.net import potential
+from parjam.net.domain import as_mpi, send_rows
 from parjam.errors import ParjamError
 from parjam.lengths import whole
 from parjam.lengths.cubes import count_cube, cube_members
 from parjam.lengths.sites import build as build_sites
-from parjam.network import Contacts
+from parjam.net.network import Contacts
 
 
 def default_e0(d):

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from parjam import io
+from parjam.files import h5md
 
 CUBE_COLUMNS = ("ell", "n", "q", "nc_in", "n_core", "nc_core", "trivial", "pieces", "null",
                 "soft", "maxwell", "maxwell_core", "extended")
@@ -10,8 +10,8 @@ CUBE_COLUMNS = ("ell", "n", "q", "nc_in", "n_core", "nc_core", "trivial", "piece
 
 def write(path, res, prov=None):
     """/lengths/* atomically (call on one rank)."""
-    with io.atomic_h5(path) as f:
-        io.write_h5md_header(f, prov)
+    with h5md.atomic_h5(path) as f:
+        h5md.write_h5md_header(f, prov)
         g = f.create_group("lengths")
         g.attrs["density_convention"] = "rho = N' / V: non-rattlers, unit masses"
         for key, val in res.summary().items():

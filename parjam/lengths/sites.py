@@ -1,4 +1,4 @@
-"""The distributed active network of parjam.active together with the positions of this rank's
+"""The distributed active network of parjam.net.active together with the positions of this rank's
 non-rattlers (the network's ``active_pos``, rows [lo, hi) in order): what the l* cube counts
 and the structure factors need beyond the contacts.  Nothing of length N is gathered.
 """
@@ -7,15 +7,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from parjam import active, rowio
-from parjam.domain import as_mpi
+from parjam.files import rowio
+from parjam.net import active
+from parjam.net.domain import as_mpi
 
 
 @dataclass
 class Sites:
     """This rank's share of a packing's non-rattlers: the network and their positions."""
 
-    net: object  # parjam.active.ActiveNetwork
+    net: object  # parjam.net.active.ActiveNetwork
     pos: np.ndarray  # (hi - lo, d) wrapped positions of the owned non-rattlers, rows lo..hi-1
     mean_diameter: float  # <s> over all N particles (rattlers too)
 
@@ -31,14 +32,14 @@ def mean_diameter(comm, diam_rows, n):
 
 
 def from_rows(comm, rows):
-    """Sites of a packing file's rows (parjam.rowio.read_rows): no rank reads all N rows."""
+    """Sites of a packing file's rows (parjam.files.rowio.read_rows): no rank reads all N rows."""
     net = rowio.network(comm, rows)
     return Sites(net, net.active_pos, mean_diameter(comm, rows.diam, rows.n))
 
 
 def from_packing(comm, pack):
     """Sites of a packing every rank holds (tests, small systems): each rank starts from its
-    row block, as parjam.active.from_packing does."""
+    row block, as parjam.net.active.from_packing does."""
     comm = as_mpi(comm)
     net = active.from_packing(comm, pack)
     start, stop = active.row_block(pack.n, comm)

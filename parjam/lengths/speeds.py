@@ -1,11 +1,11 @@
 """Sound speeds, omega* and the acoustic lengths l_L = c_L / omega*, l_T = c_T / omega*
 (Wyart, Silbert, Nagel & Witten, PRE 72, 051306 (2005), Section III and its discussion).
 
-Density.  The eigenmodes (parjam.spectrum) and the moduli (parjam.moduli) are those of the N'
+Density.  The eigenmodes (parjam.vib.spectrum) and the moduli (parjam.vib.moduli) are those of the N'
 non-rattlers with unit masses; rattlers have no contacts, carry no stress and do not move with a
 sound wave of the harmonic T = 0 solid.  The mass density that makes c = sqrt(modulus / rho) the
 slope of the phonon branches of the dynamical matrix is therefore rho = N' m / V (m = 1), not
-N / V.  With B and G the stress-strain (Wallace) moduli of parjam.moduli, the long-wavelength
+N / V.  With B and G the stress-strain (Wallace) moduli of parjam.vib.moduli, the long-wavelength
 dispersion of a pre-stressed isotropic solid is exactly
 
     rho c_L^2 = B + 2 (d - 1) G / d,        rho c_T^2 = G.
@@ -18,7 +18,7 @@ gradient) gives the speeds of each direction (:func:`christoffel_speeds`).
 
 import numpy as np
 
-from parjam import observables
+from parjam.vib import observables
 
 
 def mass_density(n_active, volume):

@@ -3,7 +3,7 @@ Section III) counted by all the ranks together, its members staying on the ranks
 
 parjam.lengths.cubes counts one cube on one rank; a cube of an edge comparable to L would bring
 that fraction of the packing there.  :func:`count_whole` makes the same count on the distributed
-active network (parjam.active: owned non-rattlers, their half-edges, a ghost plan of the active
+active network (parjam.net.active: owned non-rattlers, their half-edges, a ghost plan of the active
 numbering), step by step as :func:`parjam.lengths.cubes.count_cube`:
 
 1. members: the owned non-rattlers inside the cube; the ghosts' membership from their pulled
@@ -30,11 +30,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from parjam import active, env, hessian
-from parjam.domain import as_mpi
+from parjam import env
+from parjam.net import active
+from parjam.vib import hessian
+from parjam.net.domain import as_mpi
 from parjam.lengths.cubes import (EXTENDED_MAX_DOF, CubeCount, components, cube_members,
                                   extended_soft_count, face_cuts, null_count)
-from parjam.network import Contacts
+from parjam.net.network import Contacts
 
 WHOLE_PREFIX = "lengths_whole_inertia_"  # the whole-communicator cube counts' MUMPS factorisations
 PREPARE, COUNT = "parjam: l* whole-cube plan", "parjam: l* whole-cube count"
@@ -53,7 +55,7 @@ class Ghosted:
     """The sites' half-edges on rows of [owned active rows; ghosts]: the plan every large cube
     reuses (``prepare``)."""
 
-    halo: object  # parjam.domain.Halo of the active numbering (active.number_halo)
+    halo: object  # parjam.net.domain.Halo of the active numbering (active.number_halo)
     i: np.ndarray  # owned row of each half-edge
     j: np.ndarray  # row of its other end
     pos: np.ndarray  # wrapped positions of the rows (owned, then ghosts)

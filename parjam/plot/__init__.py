@@ -3,7 +3,7 @@
 
 import contextlib
 
-from parjam import outputs
+from parjam.files import outputs
 
 
 DPI = 150  # every PNG: labels and legends (>= 8 pt) readable at the size they are drawn
@@ -25,7 +25,7 @@ def pyplot():
 def atomic_png(path):
     """A temporary name (``.NAME.tmpPID.png`` in the same directory) to draw a PNG to, renamed
     to ``path`` when the block succeeds and removed when it fails: no partial image is ever
-    left at ``path`` (parjam.outputs: the output policy; a full disk is one line).  Figures
+    left at ``path`` (parjam.files.outputs: the output policy; a full disk is one line).  Figures
     left open by a failed drawing are closed."""
     try:
         with outputs.atomic_path(path, ".png", make_dirs=True) as tmp:

@@ -14,7 +14,7 @@ import h5py
 import numpy as np
 
 from parjam.plot import DPI, LEGEND_FONTSIZE, pyplot
-from parjam.structure import StructureFactor
+from parjam.vib.structure import StructureFactor
 
 
 def _label(fits):

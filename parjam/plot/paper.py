@@ -4,7 +4,7 @@ A results directory holds one subdirectory per bundled scene (``SCENES``: ``pape
 ``paper-2d``, ``paper-3d-10x``, ``hertz-3d``, ``softmodes-3d``, each the ``--out`` of
 ``parjam run``), or the summary files of one ``parjam run`` directly.  Each figure of
 ``FIGURES`` uses the systems of its group that hold the data it needs (its ``needs``), fits
-its laws (parjam.fits) into a ``fits`` dict and is drawn to ``repro_<name>.png``.
+its laws (parjam.study.fits) into a ``fits`` dict and is drawn to ``repro_<name>.png``.
 ``parjam plot RESULTS --img DIR`` and ``scripts/reproduce.py`` call :func:`reproduce`.
 
 Why one file of ~640 lines: every figure is a small function next to the laws it fits, and the
@@ -19,10 +19,10 @@ from typing import Callable
 import h5py
 import numpy as np
 
-from parjam import outputs
+from parjam.files import outputs
 from parjam.errors import ParjamError
 from parjam.plot import DPI, LEGEND_FONTSIZE, atomic_png, pyplot
-from parjam.fits import bootstrap, fit_eq33, fit_power, law, log_slope
+from parjam.study.fits import bootstrap, fit_eq33, fit_power, law, log_slope
 from parjam.study.summary import read_summary
 
 #: figure group -> the bundled scenes (subdirectories of a results directory) that feed it
@@ -625,7 +625,7 @@ def sizes(groups, fits):
 
 
 def write_json(path, fits):
-    """The fits as JSON (indent 1), written atomically (parjam.outputs); an undefined value
+    """The fits as JSON (indent 1), written atomically (parjam.files.outputs); an undefined value
     (NaN, inf) is null, so that the file is valid JSON."""
     outputs.write_bytes(path, outputs.json_text(fits, indent=1).encode(), make_dirs=True)
 

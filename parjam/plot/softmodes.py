@@ -9,7 +9,8 @@ import sys
 import h5py
 import numpy as np
 
-from parjam import env, io
+from parjam import env
+from parjam.files import h5md
 from parjam import softmodes as sm
 from parjam.plot import DPI, LEGEND_FONTSIZE, pyplot
 
@@ -296,7 +297,7 @@ def main(argv=None):
     p.add_argument("--ncut", type=int, default=20, help="contacts cut for softfig (20)")
     args = p.parse_args(argv)
     env.init()
-    pack = io.read_packing(args.packing)
+    pack = h5md.read_packing(args.packing)
     if pack.d != 2:
         raise sm.ParjamError("the figures need a 2D packing")
     os.makedirs(args.out_dir, exist_ok=True)

@@ -13,7 +13,7 @@ def _label(spec):
 
 
 def spectra_figure(spectra, path):
-    """Three panels for spectrum dicts from parjam.modes_io.read_spectrum."""
+    """Three panels for spectrum dicts from parjam.files.modes_io.read_spectrum."""
     plt = pyplot()
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.8))
     for spec in spectra:

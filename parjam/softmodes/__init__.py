@@ -3,11 +3,11 @@ and the Appendix): cut the contacts crossing planes, extract the null space of t
 matrix, measure how extended it is, and build the anomalous trial modes.
 
 One module per step, every step distributed over the ranks of ``comm`` (the owned active rows
-[lo, hi) of parjam.active, one particle per block of d rows; no rank holds all N particles or
+[lo, hi) of parjam.net.active, one particle per block of d rows; no rank holds all N particles or
 all contacts):
 
 - :mod:`.cut` -- planes, the bonds crossing them (:func:`crossing`) and the cut system on the
-  distributed active network of parjam.active (:func:`prepare`: each rank holds the half-edges
+  distributed active network of parjam.net.active (:func:`prepare`: each rank holds the half-edges
   of its own rows, global numbers allreduced).
 - :mod:`.operators` -- M = S^T K S (Eq. 1 without the stress term) and S (Eq. 3).
 - :mod:`.counting` -- the null-space dimension by MUMPS inertia, d + q - 1 - (Nc - Nc_iso).

@@ -3,7 +3,8 @@ system from MUMPS inertia.  Cutting q contacts of a network Nc - Nc_iso from iso
 d + q - 1 - (Nc - Nc_iso) zero modes (d translations included, Nc_iso = d(N' - 1) + 1; for an
 isostatic packing d + q - 1, :attr:`parjam.softmodes.cut.CutSystem.expected`)."""
 
-from parjam import env, factor
+from parjam import env
+from parjam.vib import factor
 from parjam.errors import ParjamError
 
 
@@ -18,7 +19,7 @@ def expected_zero_modes(d, q, excess):
 def count_below(comm, M, s, prefix="soft_inertia_"):
     """Number of eigenvalues of the symmetric M below s: the negative inertia of M - s I from a
     MUMPS LDL^T factorisation (SBAIJ; ICNTL(13) = 1 makes the inertia exact on several ranks).
-    M is best assembled as SBAIJ (parjam.hessian.assemble(fmt="sbaij")); an AIJ M is
+    M is best assembled as SBAIJ (parjam.vib.hessian.assemble(fmt="sbaij")); an AIJ M is
     converted."""
     PETSc = env.petsc()
     A = M.copy()

@@ -1,5 +1,5 @@
 """Cut-plane geometry and the cut system (Wyart et al. 2005, Sections II-III): the planes, the
-bonds crossing them, and the cut system on the distributed active network (parjam.active).
+bonds crossing them, and the cut system on the distributed active network (parjam.net.active).
 
 The cut system holds this rank's share only: the half-edges of the owned active rows
 [lo, hi) (every contact twice over all ranks, once on the owner of each end) and each
@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from parjam import potential
+from parjam.net import potential
 from parjam.errors import ParjamError
-from parjam.network import Contacts
+from parjam.net.network import Contacts
 from parjam.softmodes.counting import expected_zero_modes
 
 AXES = "xyz"
@@ -84,7 +84,7 @@ class CutSystem:
     distributed active network ``net`` (global active numbers, i owned) and the cut flag of
     each.  Global numbers are fields, computed collectively by :func:`cut_system`."""
 
-    net: object = field(repr=False)  # parjam.active.ActiveNetwork
+    net: object = field(repr=False)  # parjam.net.active.ActiveNetwork
     is_cut: np.ndarray = field(repr=False)  # mask over the half-edges ``contacts``
     planes: list
     per_plane: list  # q of each plane (a contact may count for several)
@@ -278,13 +278,14 @@ def cut_system(net, planes, is_cut, per_plane, source=None):
 
 
 def prepare(pack, planes, allow_hyperstatic=False, net=None, comm=None):
-    """The cut system: the distributed active network (``net``, from parjam.rowio.network, or
+    """The cut system: the distributed active network (``net``, from parjam.files.rowio.network, or
     built from the packing ``pack`` every rank holds on ``comm``, default COMM_SELF), checked
     for isostaticity, its half-edges crossing ``planes`` cut (collective)."""
     if not planes:
         raise ParjamError("no cut given: use --cut AXIS=FRACTION and/or --subdivide M")
     if net is None:
-        from parjam import active, env
+        from parjam import env
+        from parjam.net import active
 
         comm = comm if comm is not None else env.petsc().COMM_SELF
         net = active.from_packing(comm, pack)
@@ -318,7 +319,7 @@ def bound_to(cs, comm):
         return cs
     if cs.source is None:
         raise ParjamError("a cut system read by rows cannot move to another communicator")
-    from parjam import active
+    from parjam.net import active
 
     net = active.from_packing(comm, cs.source)
     masks = half_edge_masks(net, cs.planes)

@@ -3,7 +3,8 @@ the alternative to block inverse iteration (:mod:`parjam.softmodes.nullspace`)."
 
 import numpy as np
 
-from parjam import env, spectrum
+from parjam import env
+from parjam.vib import spectrum
 from parjam.errors import ParjamError
 from parjam.softmodes.basis import NullBasis
 from parjam.softmodes.operators import translations

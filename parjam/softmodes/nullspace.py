@@ -10,7 +10,7 @@ own; accepted vectors are written into the one n x n_soft basis.  The working ar
 n x columns, so a cut needs one copy of the basis plus O(n columns) instead of the ~6 n x
 (n_soft + oversample) arrays of a single block.  ``columns`` >= n_soft + oversample is the
 single-block (unblocked) method; the null space, and every basis-independent result (counts,
-the projector, f(x)), agree to round-off (tests/test_softmodes_columns.py).
+the projector, f(x)), agree to round-off (tests/softmodes/test_softmodes_columns.py).
 
 Out of core (``store``, ``parjam softmodes --scratch DIR``): the accepted blocks are appended to
 a :class:`parjam.softmodes.scratch.ScratchBasis` instead of the n x n_soft array, and the
@@ -19,7 +19,8 @@ deflation of the next blocks and the gap solve read it back one stored block at 
 
 import numpy as np
 
-from parjam import env, factor
+from parjam import env
+from parjam.vib import factor
 from parjam.errors import ParjamError
 from parjam.softmodes.basis import BASIS_METHODS, COLUMNS_DEFAULT, NullBasis
 from parjam.softmodes.krylov import null_basis_krylov

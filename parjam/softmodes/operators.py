@@ -1,12 +1,14 @@
 """The operators of the cut system (Wyart et al. 2005): the relaxed-spring matrix M = S^T K S
 (Eq. 1 without the stress term) and the rigidity (compatibility) matrix S of Eq. 3, assembled
 from the half-edges of the owned active rows [lo, hi) of the distributed active network (one
-particle per block of d rows, parjam.hessian), and the d translations that span their trivial
+particle per block of d rows, parjam.vib.hessian), and the d translations that span their trivial
 null space."""
 
 import numpy as np
 
-from parjam import env, hessian, potential
+from parjam import env
+from parjam.net import potential
+from parjam.vib import hessian
 
 
 def relaxed_matrix(comm, cs, contacts, fmt="aij", shift=0.0):

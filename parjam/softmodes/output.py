@@ -5,7 +5,7 @@ never holds all N rows, only one rank's block of one column block of the basis."
 
 import numpy as np
 
-from parjam import io
+from parjam.files import h5md
 from parjam.softmodes.cut import AXES
 from parjam.softmodes.linalg import columns_of
 
@@ -59,8 +59,8 @@ def write(comm, path, res, vectors=False, prov=None, block=64):
         return
     opened = False
     try:
-        with io.atomic_h5(path) as f:
-            io.write_h5md_header(f, prov)
+        with h5md.atomic_h5(path) as f:
+            h5md.write_h5md_header(f, prov)
             g = f.create_group("softmodes")
             write_tables(g, res, cut, loc)
             if vectors:

@@ -9,7 +9,7 @@ hash of its inputs, with the solver per spectrum and rough estimates (``--dry-ru
   observable asks for; the solver per state follows from what is needed there:
   the whole spectrum (D(omega), omega* without a window) -> dense LAPACK, eigenvalues only unless
   per-mode sums are wanted; a window -> SLEPc slicing; the k lowest modes -> SLEPc
-  shift-and-invert, by the policy of parjam.solver_choice (dense for windows and k up to
+  shift-and-invert, by the policy of parjam.vib.solver_choice (dense for windows and k up to
   ``solver.small_dof``).  No relaxed matrix unless asked for, no
   eigenvectors stored unless ``lowest.vectors``;
 - ``moduli``, ``softmodes``, ``fluctuations`` only when asked for;
@@ -20,7 +20,8 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 
-from parjam import kpm_dos, resources, solver_choice
+from parjam import resources
+from parjam.vib import kpm_dos, solver_choice
 from parjam.errors import ParjamError
 from parjam.study.scene import System
 
@@ -74,7 +75,7 @@ def spectrum_needs(scene, system):
         if kw.get("kpm_plateau"):
             d["kpm_plateau"] = True  # only when asked: the other stage keys stay as they were
         if kw.get("kpm"):
-            d["kpm"] = kw["kpm"]  # D(omega) by KPM (parjam.kpm_dos), likewise only when asked
+            d["kpm"] = kw["kpm"]  # D(omega) by KPM (parjam.vib.kpm_dos), likewise only when asked
         d["all"] |= kw.get("all", False)
         d["k"] = max(d["k"], kw.get("k") or 0)
         d["per_mode"] |= kw.get("per_mode", False)
@@ -114,12 +115,12 @@ def spectrum_needs(scene, system):
 
 
 def choose_solver(req, system, solver):
-    """The solver of one state's spectrum by the one policy (parjam.solver_choice), with the
+    """The solver of one state's spectrum by the one policy (parjam.vib.solver_choice), with the
     scene's [solver] limits; a dense solve is "dense-eigvalsh" (eigenvalues only) unless
     per-mode sums or vectors are wanted."""
     dof = system.max_dof
     if req.get("kpm") and not (req["all"] or req["k"] or req["window"] is not None):
-        return "kpm"  # D(omega), D0 and omega* from KPM moments alone (parjam.kpm_dos)
+        return "kpm"  # D(omega), D0 and omega* from KPM moments alone (parjam.vib.kpm_dos)
     limits = solver_choice.Limits(whole_max_dof=solver["dense_max_dof"],
                                   partial_dense_max_dof=solver["small_dof"])
     try:
@@ -141,7 +142,7 @@ def choose_solver(req, system, solver):
 # fitted to 4.5 s at 12273 dof, k = 50 (docs/speed-accuracy.md) and 140 s at 30720 dof, k = 1000
 # (N = 10240, docs/reproduction.md section 10); KPM = (probes x moments / 2 + 40 Lanczos)
 # products of 0.45 - 0.8 ms at 30720 dof (N = 10240, 4096 moments x 4 probes in 4 - 7 s) +
-# evaluating the cumulative on a 4 M grid while the moments double (parjam.kpm_dos).  Checked
+# evaluating the cumulative on a 4 M grid while the moments double (parjam.vib.kpm_dos).  Checked
 # at N = 10240 (section 11): 167 s of CPU per member measured against 205 s estimated.
 SINVERT_FACTOR = 1.4e-6
 SINVERT_PER_MODE = 4.3e-6
@@ -152,7 +153,7 @@ KPM_DELTA_OMEGA = 4.0  # (pi/2) sqrt(lambda_max) of 3D harmonic spheres, dphi <=
 
 def kpm_moments_guess(opts, label):
     """The moments KPM will use at a state: the given number, or for "auto" the resolution
-    rule of parjam.kpm_dos with omega* ~ 1.6 dphi^(1/2) (3D harmonic spheres, measured at
+    rule of parjam.vib.kpm_dos with omega* ~ 1.6 dphi^(1/2) (3D harmonic spheres, measured at
     N = 1024 and 10240) and Delta omega ~ KPM_DELTA_OMEGA / M; the cap for target pressures."""
     if opts["moments"] != "auto":
         return opts["moments"]

@@ -1,31 +1,32 @@
 """The per-state work of a scene's analysis stages: one record (a dict of arrays and scalars) per
 packing state, computed by the physics modules on the distributed active network of the
-state's file (parjam.rowio: each rank reads its rows, no rank holds all N).  The records are
+state's file (parjam.files.rowio: each rank reads its rows, no rank holds all N).  The records are
 written by rank 0; a scene that stores eigenvectors (``lowest.vectors``) has them gathered
 there, in particle-id order."""
 
 import numpy as np
 
-from parjam import kpm, kpm_dos, moduli, observables, rowio, spectrum
+from parjam.files import rowio
+from parjam.vib import kpm, kpm_dos, moduli, observables, spectrum
 from parjam import softmodes as sm
 from parjam.errors import ParjamError
 
 
 def network_record(comm, rows, net=None):
     """z, dz, p and the rest of the contact-network summary of a state's file rows (``rows``,
-    rowio.read_rows; parjam.active)."""
+    rowio.read_rows; parjam.net.active)."""
     net = net if net is not None else rowio.network(comm, rows)
     rec = dict(net.summary())
     rec["phi_c"] = float(rows.meta.get("phi_c", np.nan))
     # 1 for a stable minimum, 0 for a state the packing protocol could not make one (flagged,
-    # kept: parjam.packing.Jammer.stabilise); NaN for files written before the check existed
+    # kept: parjam.pack.packing.Jammer.stabilise); NaN for files written before the check existed
     rec["stable"] = float(rows.meta.get("stable", np.nan))
     return rec
 
 
 def dense_eigenvalues(comm, system, kind):
     """All eigenvalues of one matrix without eigenvectors (LAPACK eigvalsh of the deflated dense
-    matrix, parjam.spectrum's dense reference without its vectors): rank 0 computes, all get
+    matrix, parjam.vib.spectrum's dense reference without its vectors): rank 0 computes, all get
     (a distributed system is gathered there first: the dense path is for small N)."""
     mpi = comm.tompi4py()
     res = None
@@ -42,7 +43,7 @@ def dense_eigenvalues(comm, system, kind):
 
 def spectrum_record(comm, rows, kind, req, tol):
     """The spectrum a state needs (req from parjam.study.plan.spectrum_needs, with its solver), with
-    D0 and omega* (parjam.observables) and the per-mode sums when they were computed."""
+    D0 and omega* (parjam.vib.observables) and the per-mode sums when they were computed."""
     system = spectrum.distributed_system(rowio.network(comm, rows))
     sol = req["solver"]
     rec = {"solver": sol, "n_modes_total": system.n_modes, "n_active": system.n}
@@ -113,8 +114,8 @@ KPM_PLATEAU = {"n_moments": 512, "n_probes": 16, "seed": 0}
 
 def kpm_plateau_summary(comm, system, kind, omega):
     """(D0, omega*, plateau window) of a partial spectrum (the lowest modes or a window): the
-    plateau D0 from KPM moments of the whole matrix (parjam.kpm, the 30-60 % frequency
-    quantiles), omega* from the computed modes with it (parjam.observables.omega_star: N(omega)
+    plateau D0 from KPM moments of the whole matrix (parjam.vib.kpm, the 30-60 % frequency
+    quantiles), omega* from the computed modes with it (parjam.vib.observables.omega_star: N(omega)
     is exact up to the highest computed mode; NaN if the modes do not reach 2 omega*).  The
     partial spectrum's own upper half would bias D0, and omega* with it, low: by 5-20 % at
     dphi = 1e-5 .. 1e-3 (3D, N = 1024, docs/reproduction.md)."""

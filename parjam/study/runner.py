@@ -18,9 +18,11 @@ import time
 import h5py
 import numpy as np
 
-from parjam import ensemble, env, io, outputs, rowio
+from parjam import env
+from parjam.files import h5md, outputs, rowio
+from parjam.pack import ensemble
 from parjam.errors import ParjamError, UnjammedError
-from parjam.fluctuations import contact_fluctuations
+from parjam.net.fluctuations import contact_fluctuations
 from parjam.plot.spectra import dos_pictures
 from parjam.ranks import member_groups
 from parjam.study.records import moduli_record, network_record, softmodes_record, spectrum_record
@@ -33,7 +35,7 @@ EXIT_INTERRUPTED = 5
 
 def write_part(path, data, attrs=None):
     """{state: {name: array or scalar}} -> /<state>/<name>, atomically."""
-    with io.atomic_h5(path) as f:
+    with h5md.atomic_h5(path) as f:
         for key, val in (attrs or {}).items():
             f.attrs[key] = val
         for state, values in data.items():
@@ -202,7 +204,7 @@ class Runner:
         """One state's record; every kind but the contact fluctuations (a serial count over
         sub-boxes) reads only this rank's rows of the file."""
         if st.kind == "fluctuations":
-            return contact_fluctuations(io.read_packing(path), st.params["max_divisions"])
+            return contact_fluctuations(h5md.read_packing(path), st.params["max_divisions"])
         rows = rowio.read_rows(comm, path)
         if st.kind == "network":
             return network_record(comm, rows)

@@ -14,13 +14,14 @@ import os
 import tomllib
 from dataclasses import dataclass, field
 
-from parjam import softmodes, solver_choice
+from parjam import softmodes
+from parjam.vib import solver_choice
 from parjam.errors import ParjamError
-from parjam.packing import DISPERSITIES
-from parjam.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
+from parjam.pack.packing import DISPERSITIES
+from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
                              DEFAULT_RATIO, LADDERS, PHIC_METHODS, PackingProtocol,
                              check_tolerances)
-from parjam.spectrum import MATRICES
+from parjam.vib.spectrum import MATRICES
 
 
 # --------------------------------------------------------------------------- the parsed scene
@@ -51,7 +52,7 @@ class Protocol:
     ftol: float = DEFAULT_FTOL
     energy_window: tuple = DEFAULT_ENERGY_WINDOW
     phi_start: float = None
-    phic_method: str = "bisect"  # or "extrapolate": no phi_c state is written (parjam.ensemble)
+    phic_method: str = "bisect"  # or "extrapolate": no phi_c state is written (parjam.pack.ensemble)
 
     @property
     def has_phi_c(self):
@@ -62,7 +63,7 @@ class Protocol:
         return self.dphi if self.dphi is not None else self.pressure
 
     def labels(self):
-        """State labels in the packing files' naming (parjam.packing): phi_c first (when the
+        """State labels in the packing files' naming (parjam.pack.packing): phi_c first (when the
         bisection writes it)."""
         fmt = "dphi{:.1e}" if self.dphi is not None else "p{:.1e}"
         return ["phi_c"] * self.has_phi_c + [fmt.format(v) for v in sorted(self.values)]
@@ -93,7 +94,7 @@ class Scene:
     solver: dict = field(default_factory=dict)
 
     def packing_protocol(self, system, out):
-        """The packing protocol (parjam.protocol) of one system's pack stage, written to
+        """The packing protocol (parjam.pack.protocol) of one system's pack stage, written to
         ``out``: what ``parjam pack`` with the same settings would make."""
         p = self.protocol
         return PackingProtocol(

@@ -6,7 +6,8 @@ import warnings
 import h5py
 import numpy as np
 
-from parjam import io, kpm_dos, observables
+from parjam.files import h5md
+from parjam.vib import kpm_dos, observables
 
 # --------------------------------------------------------------------------- ensemble summary
 
@@ -20,7 +21,7 @@ SCALARS = {"network": ("phi", "phi_c", "z", "dz", "dz_iso", "pressure", "N_activ
 
 def ensemble_dos(records, bins, log=False, omega_min=None):
     """D(omega) per mode of each member on common bins up to the lowest of the members' top
-    frequencies (parjam.observables), averaged with standard errors."""
+    frequencies (parjam.vib.observables), averaged with standard errors."""
     omegas = [r["frequency"][r["frequency"] > 0] for r in records]
     top = min(float(w.max()) for w in omegas)
     lo = omega_min
@@ -38,8 +39,8 @@ def write_summary(path, st, by_kind, scene, failed=()):
     spectra the ensemble D(omega) and the pooled per-mode sums."""
     obs = scene.observables
     dos_opts = obs.get("dos", {"bins": 40, "log_bins": False, "omega_min": None})
-    with io.atomic_h5(path) as f:
-        io.write_h5md_header(f, io.provenance(1, {"command": "run", "scene": scene.path}))
+    with h5md.atomic_h5(path) as f:
+        h5md.write_h5md_header(f, h5md.provenance(1, {"command": "run", "scene": scene.path}))
         f.attrs["system"] = st.system.name
         for k, v in st.system.key().items():
             f.attrs[k] = v
@@ -110,7 +111,7 @@ KPM_SCALARS = ("kpm_D0", "kpm_omega_star", "kpm_resolved", "kpm_n_moments", "kpm
 
 
 def kpm_ensemble_dos(records, matrix, bins, log=False, omega_min=None):
-    """D(omega) per mode of each member from its stored KPM moments (parjam.kpm_dos) on common
+    """D(omega) per mode of each member from its stored KPM moments (parjam.vib.kpm_dos) on common
     bins up to the lowest of the members' spectral bounds sqrt(b), averaged over the members.
     Returns centres, edges, mean, its standard error over the members, the probes' stochastic
     error of the mean (sqrt(sum err_m^2) / members) and their quadrature sum."""

@@ -50,8 +50,8 @@ def assert_same_member(fa, fb, name=""):
     """Two open packing files of one member made on different rank counts agree to the
     round-off a shared member allows: phi_c to 1e-12, pressure to 1e-5 relative, the
     non-rattlers' positions to 1e-7 after removing the global translation (a zero mode).  Why
-    these bounds: the docstring of the comparison in tests/test_checkpoint.py."""
-    from parjam.io import observable
+    these bounds: the docstring of the comparison in tests/pack/test_checkpoint.py."""
+    from parjam.files.h5md import observable
 
     phi_a, phi_b = fa["parameters"].attrs["phi_c"], fb["parameters"].attrs["phi_c"]
     assert abs(phi_a - phi_b) <= 1e-12 * phi_b, name

@@ -18,7 +18,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
-from parjam import env, minimize  # noqa: E402
+from parjam import env
+from parjam.pack import minimize
 
 SHIFTS = [1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9]
 
@@ -26,8 +27,8 @@ SHIFTS = [1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9]
 def main():
     n, seed, every = (int(a) for a in sys.argv[1:4])
     PETSc = env.petsc()
-    from parjam.packing import member_rng
-    from parjam.packing import Jammer, random_packing
+    from parjam.pack.packing import member_rng
+    from parjam.pack.packing import Jammer, random_packing
 
     plain_fire, plain_minimise = minimize.fire, minimize.minimize
     calls = [0]

@@ -21,7 +21,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
-from parjam import env, minimize  # noqa: E402
+from parjam import env
+from parjam.pack import minimize
 
 S0 = 1e-9  # curvatures below -S0 count as negative
 stats = {"checks": 0, "jumps": 0, "t_checks": 0.0}
@@ -122,8 +123,8 @@ def make_fire(K):
 def main():
     n, seed, K = (int(a) for a in sys.argv[1:4])
     PETSc = env.petsc()
-    from parjam.packing import member_rng
-    from parjam.packing import Jammer, random_packing
+    from parjam.pack.packing import member_rng
+    from parjam.pack.packing import Jammer, random_packing
 
     minimize.fire = make_fire(K)
     t0 = time.perf_counter()

@@ -2,7 +2,7 @@
 """Halo of the force evaluation: how many non-owned particles a rank fetches per evaluation
 (ForceField._build_halo) when N particles are split over P ranks, for the scaling model of
 docs/scaling.md.  No MPI needed: the ranks' contiguous blocks of the cell-ordered numbering
-(parjam.randomstart.spatial_order, hessian.row_range) are formed here, on uniform random positions
+(parjam.pack.randomstart.spatial_order, hessian.row_range) are formed here, on uniform random positions
 at phi (the halo is geometry: the jammed structure changes it little).
 
     .venv/bin/python scripts/hpc/halo_sizes.py --n 100000 1000000 --ranks 2 8 64 256 1024
@@ -19,7 +19,7 @@ import numpy as np  # noqa: E402
 
 def halo_sizes(pack, ranks, skin_frac=0.2, sample=4):
     """{P: largest halo over ``sample`` ranks spread over the P blocks}."""
-    from parjam.system import neighbour_pairs
+    from parjam.net.system import neighbour_pairs
 
     cut = pack.diam.max() + skin_frac * pack.diam.min()  # ForceField's Verlet cutoff
     pairs = neighbour_pairs(pack.pos, pack.L, cut)
@@ -43,7 +43,7 @@ def main():
     ap.add_argument("--ranks", type=int, nargs="*", default=[2, 8, 64, 256, 1024])
     ap.add_argument("--phi", type=float, default=0.64)
     a = ap.parse_args()
-    from parjam.packing import random_packing
+    from parjam.pack.packing import random_packing
 
     print("| N | ranks | owned per rank | halo (largest) | halo / N | halo / owned |")
     print("|---|---|---|---|---|---|")

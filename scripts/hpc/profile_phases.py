@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 
 def timed(comm, name, fn, repeat=1):
     """Run fn() ``repeat`` times inside the log stage ``phase: name``; seconds per call."""
-    from parjam.packing import log_stage
+    from parjam.pack.packing import log_stage
 
     comm.barrier()
     with log_stage(f"phase: {name}"):
@@ -55,15 +55,17 @@ def main():
     ap.add_argument("--json", help="append the record to this JSON list (rank 0)")
     args, petsc_args = ap.parse_known_args()  # PETSc options (-log_view ...) pass through
 
-    from parjam import env, io, spectrum
-    from parjam.forces import ForceField
+    from parjam import env
+    from parjam.files import h5md
+    from parjam.vib import spectrum
+    from parjam.pack.forces import ForceField
     from parjam.testing.gather import gather
 
     env.init(petsc_args)
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
     mpi = comm.tompi4py()
-    pack = io.read_packing(args.packing)
+    pack = h5md.read_packing(args.packing)
     rec = {"file": args.packing, "N": pack.n, "d": pack.d, "ranks": comm.getSize()}
 
     ff = ForceField(comm, pack.diam, pack.L, pack.d, pack.alpha, pack.eps)

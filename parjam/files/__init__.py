@@ -1,0 +1,5 @@
+"""parjam's files, and no physics: H5MD packing files (:mod:`.h5md`), row-block reads and writes
+that no rank holds whole (:mod:`.rowio`), the output policy (:mod:`.outputs`), the manifest of a
+``pack`` directory (:mod:`.manifest`), checkpoint files (:mod:`.checkpointio`), spectrum files
+(:mod:`.modes_io`), and configurations made elsewhere (:mod:`.importer`).
+"""

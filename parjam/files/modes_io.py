@@ -1,0 +1,173 @@
+"""The spectrum file (docs/spectra.md): one HDF5 file per (packing, matrix, method), H5MD header
+plus
+
+    /modes/eigenvalue            (K,)  ascending lambda = omega^2
+    /modes/frequency             (K,)  sign(lambda) sqrt|lambda|
+    /modes/error                 (K,)  ||D v - lambda v||_2 / ||D||_inf per pair
+    /modes/participation_ratio   (K,)
+    /modes/eps_perp, /modes/eps_par   (K,)  transverse / longitudinal sums (Fig. "trans")
+    /modes/eigenvector           (K, N', d)  only with --vectors
+    /modes/active_particles      (N',)  packing indices of the non-rattlers (rows of the matrix)
+    /modes/rejected/{eigenvalue,error}  pairs above the tolerance (reported, not kept above)
+    /dos/omega, /dos/edges, /dos/density  D(omega) per mode (attrs: binning, normalisation, D0,
+                                          omega_star, plateau window)
+
+with the run's settings as attributes of /modes, and the packing the modes belong to as
+/particles/all (box, positions, diameters, species, as parjam.files.h5md.write_particles writes them),
+so that H5MD readers such as MDAnalysis open a spectrum file like a packing file.  Written
+atomically by all ranks together (parjam.files.rowio): no rank holds the packing's N rows.
+"""
+
+import json
+import os
+
+import h5py
+import numpy as np
+from mpi4py import MPI
+
+from parjam.files import h5md, rowio
+from parjam.net import active
+from parjam.vib import observables
+from parjam.net.domain import as_mpi
+from parjam.errors import ParjamError
+
+FORMAT = "parjam-spectrum 1"
+
+
+def mode_attrs(spec, system, packing_path, ranks):
+    """Attributes of /modes: what was computed, how, and from which file."""
+    return {
+        "format": FORMAT, "matrix": spec.matrix, "method": spec.method,
+        "tolerance": spec.tolerance, "norm_inf": spec.norm, "zero_tol": spec.zero_tol,
+        "target": spec.target, "interval_lambda": np.array(spec.interval, dtype=float),
+        "n_requested": spec.n_requested, "n_accepted": len(spec.eigenvalue),
+        "n_rejected": len(spec.rejected_eigenvalue), "complete": bool(spec.complete),
+        "n_negative": spec.n_negative, "unstable": bool(spec.unstable),
+        "n_zero_modes": spec.n_zero, "n_translations": system.d,
+        "translations_deflated": True, "rattlers_removed": True, "n_active": system.n,
+        "n_rattlers": system.n_rattlers, "dimension": system.d, "n_contacts": system.n_contacts,
+        "n_modes_total": system.n_modes, "alpha": system.alpha, "pressure": system.pressure,
+        "max_force": system.max_force, "ranks": int(ranks), "seconds": spec.seconds,
+        "packing_file": os.path.abspath(packing_path) if packing_path else "",
+        "packing_sha256": h5md.sha256(packing_path) if packing_path else "",
+        "solver_info": json.dumps(spec.info, default=float),
+    }
+
+
+def write_spectrum(comm, path, spec, system, rows, dos, prov):
+    """Write one spectrum file (collective): the per-mode arrays and attributes by rank 0, the
+    per-particle datasets by row blocks (parjam.files.rowio), so that no rank holds the packing's N
+    rows: /particles/all from each rank's file rows ``rows`` (rowio.read_rows), the
+    non-rattlers' ids from the distributed ``system`` moved to their home rows.  The
+    eigenvectors, when asked for: each rank's rows (spectrum.compute's SLEPc paths on a
+    distributed system, ``spec.vector_ids``) go to their home rows with the ids; the dense path's
+    (K, N', d) array on rank 0 (in particle-id order) is written in pieces from there."""
+    mpi = as_mpi(comm)
+    own = system.ids if system.distributed else \
+        system.active[slice(*active.row_block(len(system.active), mpi))]
+    spread = mpi.allreduce(spec.vector_ids is not None, op=MPI.LAND)
+    k = len(spec.eigenvalue)
+    if spread:  # each rank's rows (K, n_r, d) travel with their ids, K d numbers a row
+        ids, vec = rowio.home_rows(mpi, rows.n, spec.vector_ids,
+                                   spec.vectors.transpose(1, 0, 2).reshape(
+                                       len(spec.vector_ids), k * system.d))
+        vectors = vec.reshape(len(ids), k, system.d).transpose(1, 0, 2)
+    else:
+        ids, _ = rowio.home_rows(mpi, rows.n, own)
+    want = spread or mpi.bcast(spec.vectors is not None, root=0)
+    if want and not spread:
+        vectors = (spec.vectors if mpi.Get_rank() == 0 else
+                   np.zeros((k, 0, system.d)))
+    nbytes = spectrum_bytes(rows, system, len(spec.eigenvalue) if want else 0)
+    with rowio.rows_file(mpi, path, nbytes) as out:
+        out.meta(write_modes, lambda: (spec, mode_attrs(spec, system, rows.path, prov.get(
+            "ranks", 1)), dos, prov, rows.d, rows.L))
+        rowio.write_particle_rows(out, rows)
+        out.rows("modes/active_particles", ids)
+        if want:
+            out.rows("modes/eigenvector", vectors, axis=1)
+
+
+def spectrum_bytes(rows, system, n_vectors):
+    """The size of a spectrum file's per-particle data (the reservation of rowio.rows_file)."""
+    return rows.n * (8 * rows.d + 8 + 4) + 8 * system.n * (1 + n_vectors * system.d)
+
+
+def write_modes(f, spec, attrs, dos, prov, d, L):
+    """Everything but the per-particle rows: header, the box, /modes per-mode arrays and
+    attributes, /dos."""
+    h5md.write_h5md_header(f, prov)
+    h5md.particles_header(f, d, L)
+    g = f.create_group("modes")
+    for key, val in attrs.items():
+        g.attrs[key] = val
+    # omega in units of 1/tau, tau = sigma sqrt(m / epsilon) with unit masses m = 1
+    g.create_dataset("eigenvalue", data=spec.eigenvalue).attrs["unit"] = h5md.fixed_string("tau-2")
+    g.create_dataset("frequency", data=spec.frequency).attrs["unit"] = h5md.fixed_string("tau-1")
+    g.create_dataset("error", data=spec.error)
+    g.create_dataset("participation_ratio", data=spec.participation_ratio)
+    g.create_dataset("eps_perp", data=spec.eps_perp)
+    g.create_dataset("eps_par", data=spec.eps_par)
+    rej = g.create_group("rejected")
+    rej.create_dataset("eigenvalue", data=spec.rejected_eigenvalue)
+    rej.create_dataset("error", data=spec.rejected_error)
+    write_dos(f, dos)
+
+
+def write_dos(f, dos):
+    g = f.create_group("dos")
+    for key in ("omega", "edges", "density"):
+        g.create_dataset(key, data=dos[key])
+    if "density_error" in dos:
+        g.create_dataset("density_error", data=dos["density_error"])
+    for key, val in dos.items():
+        if key not in ("omega", "edges", "density", "density_error"):
+            g.attrs[key] = val
+
+
+MAX_AUTO_BINS = 40
+
+
+def auto_bins(n_frequencies):
+    """Bins for ``n`` computed frequencies when none are asked for: about sqrt(n), between 3 and
+    40, so that a few lowest modes (``--k 20``) give a histogram rather than a comb of bins
+    holding 0 or 1 mode."""
+    return int(min(MAX_AUTO_BINS, max(3, round(np.sqrt(n_frequencies)))))
+
+
+def dos_record(omega, n_modes, bins=None, log=False, omega_min=None, plateau=None):
+    """D(omega) of one spectrum on bins up to its highest computed frequency (``bins`` None:
+    :func:`auto_bins`), with D0 and omega* (definitions in parjam.vib.observables)."""
+    pos = np.asarray(omega)[np.asarray(omega) > 0]
+    if len(pos) == 0:
+        raise ParjamError("no positive frequency: cannot build D(omega)")
+    bins = auto_bins(len(pos)) if bins is None else bins
+    edges = observables.dos_edges(float(pos.max()), bins, log, omega_min)
+    centres, density = observables.density_of_states(pos, n_modes, edges)
+    d0, wstar, window = observables.dos_summary(pos, n_modes, plateau)
+    return {"omega": centres, "edges": edges, "density": density,
+            "binning": "log" if log else "linear",
+            "normalisation": "per mode: counts / ((d N' - d) * bin width)",
+            "n_modes_total": int(n_modes), "D0": d0, "omega_star": wstar,
+            "plateau_window": np.array(window, dtype=float),
+            "definition": "D0 = mean density over the plateau window; omega* = omega_half / 2, "
+                          "omega_half the first frequency where N(omega)/(n omega) >= D0/2"}
+
+
+def read_spectrum(path):
+    """A spectrum file as a dict of arrays and attributes; ParjamError if it is not one."""
+    path = os.fspath(path)
+    if not os.path.isfile(path) or not h5py.is_hdf5(path):
+        raise ParjamError(f"{path}: not an HDF5 file")
+    try:
+        with h5py.File(path, "r") as f:
+            if "modes" not in f or f["modes"].attrs.get("format") != FORMAT:
+                raise ParjamError(f"{path}: not a parjam spectrum file (no /modes of {FORMAT!r})")
+            g = f["modes"]
+            out = {key: g[key][()] for key in g if isinstance(g[key], h5py.Dataset)}
+            out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v)
+                            for k, v in g.attrs.items()}
+            out["dos"] = {key: f["dos"][key][()] for key in f["dos"]} if "dos" in f else {}
+    except (OSError, RuntimeError, KeyError) as exc:  # truncated or corrupted inside
+        raise ParjamError(f"{path}: unreadable HDF5 file ({exc})") from None
+    return out

@@ -1,0 +1,257 @@
+"""Spatial domain decomposition of a periodic box: the one component that lets every rank hold
+only its own particles and a halo of ghosts (LAMMPS' and HOOMD's design, in its simplest form).
+
+The box (edges L, periodic in every direction) is cut into P slabs along axis 0; rank r owns
+the particles with bounds[r] <= x_0 < bounds[r + 1].  The bounds sit at the particle-count
+quantiles along axis 0, found from a histogram reduced over the ranks, never from a gather, so
+no rank holds an array of length N: memory is O(N/P + halo + P).
+
+- ``migrate`` sends every particle (and any per-particle fields) to the rank that owns it;
+- ``halo`` plans the ghosts: copies of the particles, of any rank (this one too, for the periodic
+  image), within ``width`` of a rank's slab along axis 0.  Ghost positions are *unwrapped* along
+  axis 0, so that owned and ghost positions differ by plain subtraction along it; along the other
+  axes the minimum image applies (``separation``).  The plan's ``pull`` refreshes any
+  per-particle value on the ghosts (positions, diameters, flags), ``push`` sums ghost values back
+  onto their owners;
+- ``neighbour_pairs`` lists the pairs within a cutoff with at least one owned end.
+
+Slabs along one axis serve while a slab is not much thinner than the halo width (P up to
+L / width ~ tens of ranks at 10^6 particles); ghosts then come from several ranks and the
+exchange stays correct, only less local.  Communication is mpi4py's buffer Alltoallv of numpy
+arrays (zero counts between ranks that are not neighbours).  Everything is deterministic: owned
+rows are sorted by global id, ghosts by (global id, shift).
+"""
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+HIST_BINS_PER_RANK = 64  # bins of the count histogram per rank (bounds within ~1/64 of a slab)
+
+
+def as_mpi(comm):
+    """The mpi4py communicator of ``comm`` (petsc4py or mpi4py)."""
+    return comm.tompi4py() if hasattr(comm, "tompi4py") else comm
+
+
+def box_edges(L, d):
+    """Box edges as a float array of shape (d,) (a scalar L is a cube)."""
+    edges = np.broadcast_to(np.asarray(L, dtype=np.float64), (d,)).copy()
+    if not np.all(np.isfinite(edges)) or np.any(edges <= 0):
+        raise ValueError(f"box edges must be positive and finite, got {edges}")
+    return edges
+
+
+def _exchange(comm, send, counts):
+    """Alltoallv of the rows of ``send`` (grouped by destination, ``counts`` rows to each rank);
+    returns the received rows and the receive counts."""
+    size = comm.Get_size()
+    counts = np.asarray(counts, dtype=np.int64)
+    rcounts = np.empty(size, dtype=np.int64)
+    comm.Alltoall(counts, rcounts)
+    return _exchange_known(comm, send, counts, rcounts), rcounts
+
+
+def _exchange_known(comm, send, counts, rcounts):
+    """Alltoallv when both count vectors are known (a plan's repeated exchange)."""
+    send = np.ascontiguousarray(send)
+    if send.dtype == bool:
+        return _exchange_known(comm, send.view(np.uint8), counts, rcounts).view(bool)
+    row = int(np.prod(send.shape[1:], dtype=np.int64))
+    recv = np.empty((int(rcounts.sum()),) + send.shape[1:], dtype=send.dtype)
+    sc, rc = counts * row, rcounts * row
+    sd = np.concatenate(([0], np.cumsum(sc)[:-1]))
+    rd = np.concatenate(([0], np.cumsum(rc)[:-1]))
+    comm.Alltoallv([send.reshape(-1), (sc, sd)], [recv.reshape(-1), (rc, rd)])
+    return recv
+
+
+class Halo:
+    """The ghosts of one rank for fixed owned rows: who sends what to whom, and the images."""
+
+    def __init__(self, comm, send_index, send_counts, recv_counts, order, ids, shift):
+        self.comm = comm
+        self.send_index = send_index  # owned rows to send, grouped by destination rank
+        self.send_counts = send_counts
+        self.recv_counts = recv_counts
+        self.order = order  # ghost k is received row order[k] (received rows sorted by id)
+        self.ids = ids
+        self.shift = shift
+        self.x = None
+
+    @property
+    def n(self):
+        return len(self.ids)
+
+    def pull(self, values_owned):
+        """Per-particle values of the owned rows (first axis n_owned) -> the ghosts' values."""
+        got = _exchange_known(self.comm, np.asarray(values_owned)[self.send_index],
+                              self.send_counts, self.recv_counts)
+        return got[self.order]
+
+    def positions(self, x_owned):
+        """Ghost positions (unwrapped along axis 0) for the owned positions ``x_owned``, which
+        must not have been re-wrapped since the plan was made."""
+        return self.pull(x_owned) + self.shift
+
+    def push(self, values_ghost, n_owned):
+        """Ghost values (first axis n_ghost) summed onto their owners: an (n_owned, ...) array."""
+        values_ghost = np.asarray(values_ghost)
+        back = np.empty_like(values_ghost)
+        back[self.order] = values_ghost
+        got = _exchange_known(self.comm, back, self.recv_counts, self.send_counts)
+        out = np.zeros((n_owned,) + values_ghost.shape[1:], dtype=values_ghost.dtype)
+        np.add.at(out, self.send_index, got)
+        return out
+
+
+class SlabDomain:
+    """Slabs along axis 0 of a periodic box with edges ``L`` on communicator ``comm``."""
+
+    def __init__(self, comm, L, bounds):
+        self.comm = as_mpi(comm)
+        self.rank, self.size = self.comm.Get_rank(), self.comm.Get_size()
+        self.bounds = np.asarray(bounds, dtype=np.float64)
+        self.L = np.atleast_1d(np.asarray(L, dtype=np.float64))
+        self.d = len(self.L)
+        if len(self.bounds) != self.size + 1 or np.any(np.diff(self.bounds) < 0):
+            raise ValueError("slab bounds must be P + 1 non-decreasing values")
+
+    @classmethod
+    def balanced(cls, comm, L, x_local):
+        """Bounds at the particle-count quantiles along axis 0 of the positions the ranks hold
+        (collective; a histogram of HIST_BINS_PER_RANK * P bins is reduced, nothing gathered)."""
+        comm = as_mpi(comm)
+        x_local = np.asarray(x_local, dtype=np.float64)
+        if x_local.ndim != 2:
+            raise ValueError("positions must be an (n, d) array")
+        edges = box_edges(L, x_local.shape[1])
+        size = comm.Get_size()
+        bounds = np.linspace(0.0, edges[0], size + 1)
+        if size > 1:
+            nbins = HIST_BINS_PER_RANK * size
+            x0 = np.mod(x_local[:, 0], edges[0])
+            hist = np.bincount(np.minimum((x0 / edges[0] * nbins).astype(np.int64), nbins - 1),
+                               minlength=nbins).astype(np.int64)
+            total = np.empty_like(hist)
+            comm.Allreduce(hist, total)
+            cum = np.concatenate(([0], np.cumsum(total)))
+            if cum[-1] > 0:
+                targets = cum[-1] * np.arange(1, size) / size
+                b = np.clip(np.searchsorted(cum, targets, side="right") - 1, 0, nbins - 1)
+                frac = (targets - cum[b]) / np.maximum(total[b], 1)
+                bounds[1:-1] = (b + frac) * edges[0] / nbins
+            bounds = np.maximum.accumulate(bounds)
+            bounds[-1] = edges[0]
+        return cls(comm, edges, bounds)
+
+    def scaled(self, factor):
+        """The same decomposition of the box scaled by ``factor`` (an affine compression)."""
+        return SlabDomain(self.comm, self.L * factor, self.bounds * factor)
+
+    def wrap(self, x):
+        return np.mod(x, self.L)
+
+    def owner(self, x):
+        """The rank owning each position (wrapped into the box first)."""
+        x0 = np.mod(np.asarray(x, dtype=np.float64)[:, 0], self.L[0])
+        r = np.searchsorted(self.bounds, x0, side="right") - 1
+        return np.clip(r, 0, self.size - 1)
+
+    def imbalance(self, n_local):
+        """max / mean particles per rank (collective)."""
+        counts = self.comm.allgather(int(n_local))
+        mean = sum(counts) / len(counts)
+        return max(counts) / mean if mean > 0 else 1.0
+
+    def migrate(self, x, ids, fields=None):
+        """Send every row to the rank owning its (wrapped) position; returns (x, ids, fields)
+        of this rank's rows, sorted by global id.  ``fields`` maps names to per-particle arrays
+        (the same names on every rank)."""
+        x = self.wrap(np.asarray(x, dtype=np.float64))
+        ids = np.asarray(ids, dtype=np.int64)
+        fields = dict(fields or {})
+        dest = self.owner(x)
+        order = np.argsort(dest, kind="stable")
+        counts = np.bincount(dest, minlength=self.size)
+        ids_new, rcounts = _exchange(self.comm, ids[order], counts)
+        x_new = _exchange_known(self.comm, x[order], counts, rcounts)
+        out = {k: _exchange_known(self.comm, np.asarray(fields[k])[order], counts, rcounts)
+               for k in sorted(fields)}
+        keep = np.argsort(ids_new, kind="stable")
+        return x_new[keep], ids_new[keep], {k: v[keep] for k, v in out.items()}
+
+    def halo(self, x_owned, ids, width):
+        """The ghost plan for the owned rows (positions ``x_owned``, global ``ids``): every
+        particle image within ``width`` of this rank's slab along axis 0 (collective)."""
+        x_owned = np.asarray(x_owned, dtype=np.float64)
+        Lx = self.L[0]
+        if not 0 <= width < Lx / 2:
+            raise ValueError(f"halo width {width} must be below half the box ({Lx / 2})")
+        x0 = x_owned[:, 0]
+        idx, dest, shift = [], [], []
+        for s in (-Lx, 0.0, Lx):
+            xs = x0 + s
+            qlo = np.searchsorted(self.bounds[1:], xs - width, side="right")
+            qhi = np.searchsorted(self.bounds[:-1], xs + width, side="left") - 1
+            qlo, qhi = np.maximum(qlo, 0), np.minimum(qhi, self.size - 1)
+            n = np.maximum(qhi - qlo + 1, 0)
+            rows = np.repeat(np.arange(len(x0)), n)
+            q = np.repeat(qlo, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
+            if s == 0.0:
+                rows, q = rows[q != self.rank], q[q != self.rank]
+            idx.append(rows)
+            dest.append(q)
+            shift.append(np.full(len(rows), s))
+        idx, dest, shift = np.concatenate(idx), np.concatenate(dest), np.concatenate(shift)
+        order = np.argsort(dest, kind="stable")
+        idx, dest, shift = idx[order], dest[order], shift[order]
+        counts = np.bincount(dest, minlength=self.size).astype(np.int64)
+        g_ids, rcounts = _exchange(self.comm, np.asarray(ids, dtype=np.int64)[idx], counts)
+        g_s = _exchange_known(self.comm, shift, counts, rcounts)
+        perm = np.lexsort((g_s, g_ids))
+        shifts = np.zeros((len(perm), x_owned.shape[1]))
+        shifts[:, 0] = g_s[perm]
+        h = Halo(self.comm, idx, counts, rcounts, perm, g_ids[perm], shifts)
+        h.x = h.positions(x_owned)
+        return h
+
+    def separation(self, xa, xb):
+        """xb - xa: plain along axis 0 (unwrapped halo), minimum image along the others."""
+        r = np.asarray(xb, dtype=np.float64) - np.asarray(xa, dtype=np.float64)
+        r[..., 1:] -= self.L[1:] * np.round(r[..., 1:] / self.L[1:])
+        return r
+
+    def neighbour_pairs(self, x_owned, halo, cutoff):
+        """Pairs (i, j), i < j, of rows of [owned; ghosts] closer than ``cutoff`` with at least
+        one owned end (i is then owned), sorted.  Ghost-ghost pairs are another rank's."""
+        n_own = len(x_owned)
+        pts = np.concatenate([np.asarray(x_owned, dtype=np.float64).reshape(-1, self.L.size),
+                              halo.x.reshape(-1, self.L.size)])
+        if len(pts) < 2:
+            return np.empty((0, 2), dtype=np.int64)
+        pts = pts.copy()
+        lo = pts[:, 0].min()
+        pts[:, 0] -= lo
+        span = pts[:, 0].max() + 2.0 * cutoff + 1.0  # no periodic wrap along axis 0
+        pts[:, 1:] = np.mod(pts[:, 1:], self.L[1:])
+        box = np.concatenate(([span], self.L[1:]))
+        pts = np.minimum(pts, np.nextafter(box, 0))  # cKDTree wants [0, box)
+        pairs = cKDTree(pts, boxsize=box).query_pairs(cutoff, output_type="ndarray")
+        pairs = pairs[pairs[:, 0] < n_own].astype(np.int64)
+        return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def send_rows(comm, dest, ids, fields=None):
+    """Send row k of ``ids`` and of every per-particle array in ``fields`` to rank ``dest[k]``
+    (collective); returns (ids, fields) of the rows received, sorted by id.  The packing engine
+    (parjam.pack.engine) hands its slabs back to PETSc's contiguous row blocks with it."""
+    comm = as_mpi(comm)
+    dest = np.asarray(dest, dtype=np.int64)
+    fields = dict(fields or {})
+    order = np.argsort(dest, kind="stable")
+    counts = np.bincount(dest, minlength=comm.Get_size())
+    ids_new, rcounts = _exchange(comm, np.asarray(ids, dtype=np.int64)[order], counts)
+    out = {k: _exchange_known(comm, np.asarray(fields[k])[order], counts, rcounts)
+           for k in sorted(fields)}
+    keep = np.argsort(ids_new, kind="stable")
+    return ids_new[keep], {k: v[keep] for k, v in out.items()}

@@ -1,0 +1,459 @@
+/* Compiled kernels of parjam's force evaluation and FIRE step (parjam/pack/kernels.py loads them with
+ * ctypes; scripts/setup-env and `pip install` build them, see kernels.py).
+ *
+ * parjam_pair_forces: for the neighbour pairs (i < j, sorted by (i, j)) that touch the owned
+ * particles [lo, hi), adds the contact forces to the owned particles in pair order -- so the sum
+ * on a particle does not depend on how particles are split over ranks -- and returns the energy
+ * of the pairs whose first particle is owned (each pair counted once over all ranks).
+ * Positions need not be folded into [0, L) exactly (see the minimum image below).
+ * V = (eps/alpha)(1 - r/sigma)^alpha for r < sigma, sigma = (s_i + s_j)/2 (the paper's Eq. (1)).
+ *
+ * parjam_fire_step: one FIRE step fused with the force evaluation (parjam/pack/fire.py): the
+ * velocity/position update of the owned particles, the forces at the new positions, and the
+ * partial sums that the next step's decisions need (energy, F.v, |F|^2, |v|^2, max |F_i|^2,
+ * max |v_i|^2, max displacement^2 since the neighbour list was built), which the caller reduces
+ * over the ranks in one allreduce.
+ */
+#include <math.h>
+#include <stdint.h>
+
+#if defined(__GNUC__)
+#define ALWAYS_INLINE inline __attribute__((always_inline))
+#else
+#define ALWAYS_INLINE inline
+#endif
+
+static double powa(double x, double a)
+{
+    return a == 1.0 ? x : (a == 2.0 ? x * x : pow(x, a));
+}
+
+/* x_j - x_i, minimum image.  Positions are kept near [0, L), so this loops at most once or
+ * twice.  Across the boundary x ~ +-L would round at ulp(L); the particle near L is shifted by
+ * L first (exact for positions in [L/2, 2L]) and the small numbers are subtracted, so overlaps
+ * of 1e-8 keep ~1e-16 absolute precision whatever L (parjam.net.system). */
+static ALWAYS_INLINE double separation(double xi, double xj, double L)
+{
+    double x = xj - xi;
+    if (x > 0.5 * L) {
+        double xs = xj - L;
+        while (xs - xi > 0.5 * L)
+            xs -= L;
+        x = xs - xi;
+    } else if (x < -0.5 * L) {
+        double xs = xi - L;
+        while (xj - xs < -0.5 * L)
+            xs -= L;
+        x = xj - xs;
+    }
+    return x;
+}
+
+/* Contact forces on the owned particles [lo, hi) of ``pos`` from the pairs into ``force``
+ * (zeroed first); returns the energy of the pairs whose first particle is owned.  ``d`` and
+ * ``harmonic`` (alpha = 2) are constants at the call sites in forces(), which are inlined, so
+ * the harmonic loop holds no pow and no branch on alpha, and the loops over d unroll. */
+static ALWAYS_INLINE double pair_loop(int64_t npairs, const int64_t *pi, const int64_t *pj,
+                               const double *pos, const double *diam, double L, int d,
+                               double alpha, double eps, int64_t lo, int64_t hi, double *force,
+                               const int harmonic)
+{
+    double energy = 0.0;
+    for (int64_t k = 0; k < (hi - lo) * d; k++)
+        force[k] = 0.0;
+    for (int64_t p = 0; p < npairs; p++) {
+        const int64_t i = pi[p], j = pj[p];
+        double dr[3], r2 = 0.0;
+        for (int a = 0; a < d; a++) {
+            const double x = separation(pos[i * d + a], pos[j * d + a], L);
+            dr[a] = x;
+            r2 += x * x;
+        }
+        const double sigma = 0.5 * (diam[i] + diam[j]);
+        if (r2 >= sigma * sigma)
+            continue;
+        const double r = sqrt(r2);
+        const double delta = 1.0 - r / sigma;
+        /* V'(r) = -(eps/sigma) delta^(alpha-1) */
+        const double dv = -(eps / sigma) * (harmonic ? delta : powa(delta, alpha - 1.0));
+        const double c = -dv / r; /* force on j = c dr */
+        if (j >= lo && j < hi)
+            for (int a = 0; a < d; a++)
+                force[(j - lo) * d + a] += c * dr[a];
+        if (i >= lo && i < hi) {
+            for (int a = 0; a < d; a++)
+                force[(i - lo) * d + a] -= c * dr[a];
+            energy += harmonic ? (eps / 2.0) * (delta * delta) : (eps / alpha) * powa(delta, alpha);
+        }
+    }
+    return energy;
+}
+
+static double forces(int64_t npairs, const int64_t *pi, const int64_t *pj, const double *pos,
+                     const double *diam, double L, int d, double alpha, double eps, int64_t lo,
+                     int64_t hi, double *force)
+{
+    const int harmonic = alpha == 2.0;
+    if (d == 3 && harmonic)
+        return pair_loop(npairs, pi, pj, pos, diam, L, 3, alpha, eps, lo, hi, force, 1);
+    if (d == 2 && harmonic)
+        return pair_loop(npairs, pi, pj, pos, diam, L, 2, alpha, eps, lo, hi, force, 1);
+    if (d == 3)
+        return pair_loop(npairs, pi, pj, pos, diam, L, 3, alpha, eps, lo, hi, force, 0);
+    if (d == 2)
+        return pair_loop(npairs, pi, pj, pos, diam, L, 2, alpha, eps, lo, hi, force, 0);
+    return pair_loop(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, force, 0);
+}
+
+double parjam_pair_forces(int64_t npairs, const int64_t *pi, const int64_t *pj, const double *pos,
+                          const double *diam, double L, int d, double alpha, double eps,
+                          int64_t lo, int64_t hi, double *force)
+{
+    return forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, force);
+}
+
+/* Largest |x_k - ref_k|^2 (minimum image) over the nown particles. */
+static double max_displacement2(int64_t nown, int d, const double *x, const double *ref, double L)
+{
+    double m = 0.0;
+    for (int64_t k = 0; k < nown; k++) {
+        double s = 0.0;
+        for (int a = 0; a < d; a++) {
+            double dx = x[k * d + a] - ref[k * d + a];
+            if (dx > 0.5 * L || dx < -0.5 * L) /* rare: only after positions were folded */
+                dx -= L * rint(dx / L);
+            s += dx * dx;
+        }
+        if (s > m)
+            m = s;
+    }
+    return m;
+}
+
+enum { FIRE_UPDATE = 1, FIRE_FORCES = 2 };
+
+/* One FIRE step on the nown owned particles (x, v, f: nown x d, C order).
+ *
+ * FIRE_UPDATE (Bitzek et al., PRL 97, 170201 (2006); semi-implicit Euler as in Guenole et al.,
+ * Comput. Mater. Sci. 175, 109584 (2020)), with the scalars the caller derived from the last
+ * reduction:  if ``reset`` (P <= 0): x += back v, v = 0;  then v += dt F;  v = mix_f F + mix_v v
+ * (mix_v = 1 - a, mix_f = a |v|/|F|);  x += dt v.  When stale2 > 0 and some particle has moved
+ * by sqrt(stale2) or more since ``ref`` (the neighbour list's positions), returns 1 without
+ * computing forces: the caller rebuilds the list and calls again with FIRE_FORCES alone.
+ *
+ * FIRE_FORCES: the forces on the owned particles from the pairs over ``pos`` (the owned block is
+ * [lo, hi) of pos; on one rank pos is x itself), then sums[] = {energy, F.v, |F|^2, |v|^2,
+ * max |F_i|^2, max |v_i|^2, max displacement^2 from ref} over the owned particles. */
+int parjam_fire_step(int mode, int64_t nown, int d, double *x, double *v, double *f,
+                     const double *ref, double L, double dt, int reset, double back, double mix_v,
+                     double mix_f, double stale2, int64_t npairs, const int64_t *pi,
+                     const int64_t *pj, const double *pos, const double *diam, double alpha,
+                     double eps, int64_t lo, int64_t hi, double *sums)
+{
+    const int64_t n = nown * d;
+    if (mode & FIRE_UPDATE) {
+        for (int64_t k = 0; k < n; k++) {
+            double vk = v[k];
+            if (reset) {
+                x[k] += back * vk;
+                vk = 0.0;
+            }
+            vk += dt * f[k];
+            vk = mix_f * f[k] + mix_v * vk;
+            v[k] = vk;
+            x[k] += dt * vk;
+        }
+        if (stale2 > 0.0 && max_displacement2(nown, d, x, ref, L) >= stale2)
+            return 1;
+    }
+    if (mode & FIRE_FORCES) {
+        double e = forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f);
+        double p = 0.0, f2 = 0.0, v2 = 0.0, fm = 0.0, vm = 0.0;
+        for (int64_t k = 0; k < nown; k++) {
+            double fk = 0.0, vk = 0.0;
+            for (int a = 0; a < d; a++) {
+                const double fa = f[k * d + a], va = v[k * d + a];
+                p += fa * va;
+                fk += fa * fa;
+                vk += va * va;
+            }
+            f2 += fk;
+            v2 += vk;
+            if (fk > fm)
+                fm = fk;
+            if (vk > vm)
+                vm = vk;
+        }
+        sums[0] = e;
+        sums[1] = p;
+        sums[2] = f2;
+        sums[3] = v2;
+        sums[4] = fm;
+        sums[5] = vm;
+        sums[6] = max_displacement2(nown, d, x, ref, L);
+    }
+    return 0;
+}
+
+#ifndef PARJAM_SRC_SHA
+#define PARJAM_SRC_SHA "unknown"
+#endif
+/* SHA-256 of this file when it was compiled (parjam.pack.kernels checks it against the source) */
+const char *parjam_src_sha = PARJAM_SRC_SHA;
+
+/* Counting sort of n points by cell: ``order`` lists them cell by cell (ascending index within
+ * a cell), cell c's range in it is start[c] .. start[c + 1] (start holds ncells + 1). */
+static void bucket_by_cell(int64_t n, int64_t ncells, const int64_t *cellof, int64_t *start,
+                           int64_t *order)
+{
+    for (int64_t c = 0; c <= ncells; c++)
+        start[c] = 0;
+    for (int64_t k = 0; k < n; k++)
+        start[cellof[k] + 1]++;
+    for (int64_t c = 0; c < ncells; c++)
+        start[c + 1] += start[c];
+    for (int64_t k = 0; k < n; k++)
+        order[start[cellof[k]]++] = k;
+    for (int64_t c = ncells; c > 0; c--)
+        start[c] = start[c - 1];
+    start[0] = 0;
+}
+
+/* Neighbour search by cells (kernels.cell_pairs): the pairs (i, j) with |x_j - x_i| <= cutoff
+ * (minimum image) and i or j in [lo, hi), each once, as two index arrays of capacity ``cap``;
+ * in (i, j) order, *sorted = 1, unless some pair's first particle is not owned (a rank's ghost),
+ * *sorted = 0.  Positions are folded into [0, L); the box holds nc >= 3 cells of edge >= cutoff
+ * per direction.  The particles are counting-sorted by cell (ascending index within a cell) and
+ * their positions copied in that order, so a cell's candidates are read contiguously.
+ * Scratch: start (nc^d + 1), order and cellof (n), sp (n d).
+ * Returns the number of pairs, or -(number needed) when cap is too small (nothing usable). */
+int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double cutoff, int nc,
+                          int64_t lo, int64_t hi, int64_t *start, int64_t *order, int64_t *cellof,
+                          double *sp, int64_t cap, int64_t *pi, int64_t *pj, int *sorted)
+{
+    int64_t ncells = 1;
+    for (int a = 0; a < d; a++)
+        ncells *= nc;
+    const double scale = nc / L;
+    for (int64_t k = 0; k < n; k++) {
+        int64_t c = 0;
+        for (int a = 0; a < d; a++) {
+            int64_t m = (int64_t)(pos[k * d + a] * scale);
+            if (m >= nc)
+                m = nc - 1;
+            if (m < 0)
+                m = 0;
+            c = c * nc + m;
+        }
+        cellof[k] = c;
+    }
+    bucket_by_cell(n, ncells, cellof, start, order);
+    for (int64_t q = 0; q < n; q++)
+        for (int a = 0; a < d; a++)
+            sp[q * d + a] = pos[order[q] * d + a];
+    const double cut2 = cutoff * cutoff;
+    const int span2 = d == 3 ? 3 : 1; /* offsets in the third direction (none in 2D) */
+    int64_t count = 0;
+    int64_t unordered = 0; /* pairs (j, i) with j < i not owned: then the caller sorts */
+    for (int64_t i = lo; i < hi; i++) {
+        const int64_t first = count;
+        int m[3] = {0, 0, 0};
+        for (int a = d - 1, c = (int)cellof[i]; a >= 0; a--, c /= nc)
+            m[a] = c % nc;
+        for (int o0 = 0; o0 < 3; o0++)
+            for (int o1 = 0; o1 < 3; o1++)
+                for (int o2 = 0; o2 < span2; o2++) {
+                    /* the neighbour cell, and the image shift its wrap implies: x_j - x_i is
+                     * then x_j - (x_i - shift), with no branch per candidate */
+                    const int oo[3] = {o0, o1, o2};
+                    double xr[3] = {0.0, 0.0, 0.0};
+                    int64_t c = 0;
+                    for (int a = 0; a < d; a++) {
+                        int t = m[a] + oo[a] - 1;
+                        double shift = 0.0;
+                        if (t < 0) {
+                            t += nc;
+                            shift = -L;
+                        } else if (t >= nc) {
+                            t -= nc;
+                            shift = L;
+                        }
+                        c = c * nc + t;
+                        xr[a] = pos[i * d + a] - shift;
+                    }
+                    for (int64_t q = start[c]; q < start[c + 1]; q++) {
+                        const int64_t j = order[q];
+                        if (j == i || (j >= lo && j < hi && j < i))
+                            continue; /* each owned-owned pair once, from its smaller index */
+                        double r2 = 0.0;
+                        for (int a = 0; a < d; a++) {
+                            const double x = sp[q * d + a] - xr[a];
+                            r2 += x * x;
+                        }
+                        const int in = r2 <= cut2;
+                        if (count < cap) { /* written always, kept when in range */
+                            pi[count] = i < j ? i : j;
+                            pj[count] = i < j ? j : i;
+                        }
+                        unordered += in & (j < i);
+                        count += in;
+                    }
+                }
+        /* the row of i in ascending j (insertion sort of a few entries): with no unordered
+         * pair the whole list comes out in (i, j) order */
+        if (count <= cap && !unordered)
+            for (int64_t p = first + 1; p < count; p++) {
+                const int64_t key = pj[p];
+                int64_t q = p - 1;
+                while (q >= first && pj[q] > key) {
+                    pj[q + 1] = pj[q];
+                    q--;
+                }
+                pj[q + 1] = key;
+            }
+    }
+    *sorted = !unordered;
+    return count <= cap ? count : -count;
+}
+
+/* The search loop of parjam_slab_pairs, inlined with d and ``wide`` constant at its call
+ * sites (the loops over d unroll, the periodic branch goes). */
+static ALWAYS_INLINE int64_t slab_loop(int d, const int wide, const double *pos, double L,
+                                       double cutoff, int64_t nx, int64_t nc, const int64_t *row,
+                                       const int64_t *gid, const int64_t *kind, int64_t nlow,
+                                       const int64_t *low, const int64_t *start,
+                                       const int64_t *order, const int64_t *cellof,
+                                       const double *sp, const int64_t *sg, int64_t cap,
+                                       int64_t *pi, int64_t *pj)
+{
+    const double cut2 = cutoff * cutoff;
+    const int64_t span = wide ? 3 : nc;
+    const int64_t span2 = d == 3 ? span : 1;
+    int64_t count = 0;
+    for (int64_t t = 0; t < nlow; t++) {
+        const int64_t i = low[t];
+        const int64_t first = count;
+        /* j is kept when gid[j] > gid[i] and (i or j owned): with g = 2 gid + (not owned),
+         * g_j >= gi2 + 2 (gid[i] owned) or g_j = 2 gid[j] >= gi2 + 1 with j owned */
+        const int64_t gi2 = 2 * gid[i];
+        const int own_i = kind[i] == 0;
+        int64_t m[3] = {0, 0, 0};
+        int64_t ci = cellof[i];
+        for (int a = d - 1; a >= 1; a--) {
+            m[a] = ci % nc;
+            ci /= nc;
+        }
+        m[0] = ci;
+        for (int64_t o0 = -1; o0 <= 1; o0++) {
+            const int64_t t0 = m[0] + o0;
+            if (t0 < 0 || t0 >= nx)
+                continue;
+            for (int64_t o1 = 0; o1 < span; o1++)
+                for (int64_t o2 = 0; o2 < span2; o2++) {
+                    int64_t c = t0;
+                    const int64_t oo[3] = {0, o1, o2};
+                    double xr[3] = {pos[i * d], 0.0, 0.0};
+                    for (int a = 1; a < d; a++) {
+                        int64_t tt = wide ? m[a] + oo[a] - 1 : oo[a];
+                        double shift = 0.0;
+                        if (tt < 0) {
+                            tt += nc;
+                            shift = -L;
+                        } else if (tt >= nc) {
+                            tt -= nc;
+                            shift = L;
+                        }
+                        c = c * nc + tt;
+                        xr[a] = pos[i * d + a] - shift; /* x_j - x_i = x_j - (x_i - shift) */
+                    }
+                    for (int64_t q = start[c]; q < start[c + 1]; q++) {
+                        const int64_t g = sg[q];
+                        if (own_i ? g < gi2 + 2 : (g & 1) || g <= gi2)
+                            continue;
+                        double r2 = 0.0;
+                        for (int a = 0; a < d; a++) {
+                            double x = sp[q * d + a] - xr[a];
+                            if (!wide && a > 0 && (x > 0.5 * L || x < -0.5 * L))
+                                x -= L * rint(x / L);
+                            r2 += x * x;
+                        }
+                        if (r2 > cut2)
+                            continue;
+                        if (count < cap) {
+                            pi[count] = i;
+                            pj[count] = q; /* a cell-order index until the row is sorted */
+                        }
+                        count++;
+                    }
+                }
+        }
+        if (count <= cap) {
+            /* the group of i by the upper end's global id (insertion sort of a few entries) */
+            for (int64_t p = first + 1; p < count; p++) {
+                const int64_t key = pj[p];
+                int64_t q = p - 1;
+                while (q >= first && sg[pj[q]] > sg[key]) {
+                    pj[q + 1] = pj[q];
+                    q--;
+                }
+                pj[q + 1] = key;
+            }
+            for (int64_t p = first; p < count; p++) {
+                pi[p] = row[pi[p]];
+                pj[p] = row[order[pj[p]]];
+            }
+        }
+    }
+    return count <= cap ? count : -count;
+}
+
+/* Neighbour search of one slab (kernels.slab_pairs, parjam.pack.engine): n search points -- a rank's
+ * owned particles (kind 0), images of its own particles across the periodic boundary (kind 1)
+ * and ghosts of other ranks (kind 2) -- open along axis 0 (the halo is unwrapped there) and
+ * periodic with edge L along the others.  A pair of points closer than ``cutoff`` is kept when
+ * one end is an owned particle and the other has a larger global id ``gid``; a pair whose upper
+ * end is an own image is kept only from an owned lower end (each physical pair once).  The pairs
+ * come out as rows ``row[a]`` < ... of the force arrays, grouped by their lower end in the order
+ * ``low`` (kinds 0 and 2 by global id) and, within a group, by the upper end's global id: the
+ * global (i, j) order, so the contact forces on a particle are summed in the same order on any
+ * number of ranks.  Cells: nx of edge w0 along axis 0 from x0min, nc of edge L / nc along the
+ * others (every cell once when nc < 3).  Scratch: start (ncells + 1), order, cellof, sg (n), sp (n d).
+ * Returns the number of pairs, or -(number needed) when cap is too small. */
+int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double cutoff,
+                          double x0min, double w0, int64_t nx, int64_t nc, const int64_t *row,
+                          const int64_t *gid, const int64_t *kind, int64_t nlow,
+                          const int64_t *low, int64_t *start, int64_t *order, int64_t *cellof,
+                          double *sp, int64_t *sg, int64_t cap, int64_t *pi, int64_t *pj)
+{
+    int64_t ncells = nx;
+    for (int a = 1; a < d; a++)
+        ncells *= nc;
+    const double scale = nc / L;
+    for (int64_t k = 0; k < n; k++) {
+        int64_t m = (int64_t)((pos[k * d] - x0min) / w0);
+        int64_t c = m < 0 ? 0 : (m >= nx ? nx - 1 : m);
+        for (int a = 1; a < d; a++) {
+            m = (int64_t)(pos[k * d + a] * scale);
+            c = c * nc + (m < 0 ? 0 : (m >= nc ? nc - 1 : m));
+        }
+        cellof[k] = c;
+    }
+    bucket_by_cell(n, ncells, cellof, start, order);
+    /* positions, and the global id (times 2, plus 1 for a non-owned point), in cell order, so
+     * that a cell's candidates are read contiguously */
+    for (int64_t q = 0; q < n; q++) {
+        const int64_t k = order[q];
+        for (int a = 0; a < d; a++)
+            sp[q * d + a] = pos[k * d + a];
+        sg[q] = 2 * gid[k] + (kind[k] != 0);
+    }
+    const int wide = nc >= 3; /* periodic neighbours m-1, m, m+1; else every cell once */
+    if (d == 3 && wide)
+        return slab_loop(3, 1, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
+                         cellof, sp, sg, cap, pi, pj);
+    if (d == 2 && wide)
+        return slab_loop(2, 1, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
+                         cellof, sp, sg, cap, pi, pj);
+    return slab_loop(d, 0, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
+                     cellof, sp, sg, cap, pi, pj);
+}

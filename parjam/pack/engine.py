@@ -1,0 +1,278 @@
+"""The packing engine on the spatial domain decomposition (parjam.net.domain): FIRE's state of one
+packing held as numpy arrays of each rank's own particles (a slab) and a halo of ghosts, so that
+no rank holds or loops over all N particles (issue 18).
+
+Each rank owns the particles of its slab (positions, velocities, diameters, global ids, sorted
+by id).  A neighbour rebuild hands particles that left a slab to their new owner
+(``SlabDomain.migrate``; the slab bounds move to the count quantiles again when the counts
+drift by more than REBALANCE), plans the ghosts within cutoff = max diameter + skin of the slab
+(``SlabDomain.halo``, their diameters pulled once) and lists the pairs of owned particles and
+ghosts in compiled code (``kernels.slab_pairs``; on one rank, where all ghosts are periodic
+images, the fully periodic cell search ``kernels.cell_pair_lists``, with no halo).  A FIRE
+step then is: the compiled update of the owned particles, ONE ghost refresh (``Halo.pull`` of
+the positions), the compiled forces and partial sums, ONE allreduce of the seven sums
+(``parjam_fire_step``).
+
+Ghost pairs are computed on both sides: a pair of particles on two ranks is listed by both, and
+each adds the force to its own particle only (no second exchange to push ghost forces back).
+The pairs are listed in global (i, j) order and the separation is the minimum image of the
+difference of the continuous (never re-wrapped) positions, exactly as the serial kernel does,
+so the force on a particle is bitwise independent of the number of ranks and of when the list
+was rebuilt; sums over particles (energy, F.v, ...) differ across decompositions in round-off
+only.  ``resync`` redoes the decomposition from the positions alone; parjam.pack.fire calls it
+where it offers checkpoint snapshots, so a run resumed from one meets the same decomposition
+(hence the same sums, bitwise) as the run that wrote it.
+
+The positions are kept unwrapped between rebuilds (a particle's coordinates change only by
+FIRE's updates): the wrapped copy a rebuild needs for ownership and search is temporary.
+"""
+
+import contextlib
+
+import numpy as np
+
+from parjam.pack import kernels
+from parjam.net.domain import SlabDomain, as_mpi, send_rows
+from parjam.logevents import ALLREDUCE, FORCE, HALO, MIGRATE, REBUILD, event
+
+REBALANCE = 1.10  # new slab bounds when the most loaded rank holds 10 % more than the mean
+
+
+class FireSums:
+    """The global sums of one fused FIRE step (from the 7-number buffer of _kernels.c)."""
+
+    __slots__ = ("energy", "power", "f2", "v2", "fmax", "vmax", "disp")
+
+    def __init__(self, s):
+        self.energy, self.power = float(s[0]), float(s[1])
+        self.f2, self.v2 = float(s[2]), float(s[3])
+        self.fmax, self.vmax, self.disp = (float(np.sqrt(s[4])), float(np.sqrt(s[5])),
+                                           float(np.sqrt(s[6])))
+
+
+class SlabEngine:
+    """Forces and the fused FIRE step of one packing (cubic box of edge L, d dimensions) whose
+    particles are spread over the slabs of communicator ``comm``.  ``x``, ``ids``, ``diam`` and
+    ``v`` are the rows this rank brings (any split of the N particles: every rank's rows are
+    handed to their slabs here)."""
+
+    def __init__(self, comm, L, alpha, eps, skin, x, ids, diam, v=None):
+        self.comm = as_mpi(comm)
+        self.rank, self.size = self.comm.Get_rank(), self.comm.Get_size()
+        x = np.array(x, dtype=np.float64)  # copies: the engine moves its own
+        self.d = x.shape[1]
+        self.L = float(L)
+        self.alpha, self.eps, self.skin = alpha, eps, float(skin)
+        dmax = float(np.max(diam)) if len(diam) else 0.0
+        self.cut = self.comm.allreduce(dmax, op=_mpi_max()) + self.skin
+        self.n_rebuilds = self.n_migrated = 0
+        self.sums = np.zeros(kernels.N_SUMS)
+        v = np.zeros_like(x) if v is None else np.array(v, dtype=np.float64)
+        self.domain = SlabDomain.balanced(self.comm, self.L, x)
+        ids = np.asarray(ids, dtype=np.int64)
+        o = np.argsort(ids, kind="stable")  # rows sorted by id (migrate sorts them too)
+        self._own(x[o], ids[o], np.asarray(diam, dtype=np.float64)[o], v[o])
+        self.rebuild()
+
+    # --- the decomposition ---------------------------------------------------------------------
+    def _own(self, x, ids, diam, v):
+        self.xu, self.ids, self.diam, self.v = x, ids, diam, v
+
+    def rebuild(self, rebalance=False):
+        """Migration (and new bounds if the counts drifted or ``rebalance``), the ghost plan
+        and the pair list at the current positions (collective)."""
+        with event(REBUILD):
+            with event(MIGRATE):
+                if self.size > 1:
+                    leaving = np.count_nonzero(self.domain.owner(self.xu) != self.rank)
+                    ids, fl = self._migrate(self.xu, self.ids, self.v, self.diam)
+                    if rebalance or self.domain.imbalance(len(ids)) > REBALANCE:
+                        self.domain = SlabDomain.balanced(self.comm, self.L, fl["xu"])
+                        ids, fl = self._migrate(fl["xu"], ids, fl["v"], fl["diam"])
+                    self.n_migrated += int(leaving)
+                else:  # one slab: nothing to hand over
+                    ids, fl = self.ids, {"xu": self.xu, "v": self.v, "diam": self.diam}
+            self._own(fl["xu"], ids, fl["diam"], fl["v"])
+            self._plan()
+            self.n_rebuilds += 1
+
+    def _migrate(self, xu, ids, v, diam):
+        """SlabDomain.migrate of the rows, their fields packed into one array (one exchange)."""
+        d = self.d
+        packed = np.concatenate([xu, v, diam[:, None]], axis=1)
+        _, ids, fl = self.domain.migrate(xu, ids, {"p": packed})
+        p = fl["p"]
+        return ids, {"xu": np.ascontiguousarray(p[:, :d]),
+                     "v": np.ascontiguousarray(p[:, d:2 * d]),
+                     "diam": np.ascontiguousarray(p[:, 2 * d])}
+
+    def _plan(self):
+        """Ghosts, the force arrays and the pair list for the owned rows (collective)."""
+        n_own, d = len(self.ids), self.d
+        # the last list's arrays go first (a rebuild's peak memory), its length sizes the next
+        cap = int(1.25 * len(self.pi)) + 1024 if getattr(self, "pi", None) is not None else None
+        self.kernel = self.pi = self.pj = self.f = self.ref = self.pdiam = None
+        xw = self.domain.wrap(self.xu)
+        if self.size == 1 and self._plan_periodic(xw, cap):
+            return
+        halo = self.domain.halo(xw, self.ids, self.cut)
+        # the ghosts' positions and diameters in one exchange
+        with event(HALO) if self.size > 1 else contextlib.nullcontext():  # one rank: a copy
+            got = halo.pull(np.concatenate([self.xu, self.diam[:, None]], axis=1))
+        g_xu, g_diam = got[:, :d], got[:, d]
+        src = np.repeat(np.arange(self.size), halo.recv_counts)[halo.order]
+        image = src == self.rank  # own particles seen across the periodic boundary
+        foreign = np.flatnonzero(~image)
+        row = np.empty(halo.n, dtype=np.int64)
+        row[foreign] = n_own + np.arange(len(foreign))
+        row[image] = np.searchsorted(self.ids, halo.ids[image])
+        kind = np.where(image, 1, 2)
+        gid = np.concatenate([self.ids, halo.ids])
+        kinds = np.concatenate([np.zeros(n_own, dtype=np.int64), kind])
+        # owned rows sorted by id, ghosts by (id, shift): a stable sort by id merges them
+        low = np.argsort(gid, kind="stable")
+        low = low[kinds[low] != 1]
+        self.pi, self.pj = kernels.slab_pairs(np.concatenate([xw, halo.x]), self.L, self.cut,
+                                              np.concatenate([np.arange(n_own), row]), gid,
+                                              kinds, low, cap)
+        self.halo, self.foreign = halo, foreign
+        self.all_foreign = len(foreign) == halo.n
+        self._arrays(g_xu[foreign], g_diam[foreign])
+
+    def _plan_periodic(self, xw, cap):
+        """One rank: every ghost is an image of an owned particle, so the fully periodic cell
+        search (kernels.cell_pair_lists, the serial kernel's) lists the pairs, rows = ids
+        (sorted), in (i, j) order, with no halo.  False when that search does not apply (fewer
+        than 3 cells a side; no compiled library): the slab search serves then."""
+        got = kernels.cell_pair_lists(xw, self.L, self.cut, 0, len(self.ids), cap)
+        if got is None:
+            return False
+        self.pi, self.pj = got
+        self.halo, self.foreign, self.all_foreign = None, np.empty(0, dtype=np.int64), True
+        self._arrays(np.empty((0, self.d)), np.empty(0))
+        return True
+
+    def _arrays(self, g_pos, g_diam):
+        """The force arrays for the owned rows and the ghosts of other ranks, and the kernel."""
+        n_own, d = len(self.ids), self.d
+        self.pos = np.empty((n_own + len(g_pos), d))  # [owned; ghosts of other ranks]
+        self.pos[:n_own] = self.xu
+        self.xu = self.pos[:n_own]  # the owned positions are a view of the force array
+        self.pdiam = np.concatenate([self.diam, g_diam])
+        self.ref = self.xu.copy()
+        self.f = np.zeros((n_own, d))
+        self.v = np.ascontiguousarray(self.v)
+        self.kernel = kernels.FireKernel(self.xu, self.v, self.f, self.ref, self.pi, self.pj,
+                                         self.pos, self.pdiam, self.sums)
+        self.pos[n_own:] = g_pos
+        self.fresh = True
+
+    def _refresh(self):
+        """The ghosts' positions from their owners (collective; a no-op on one rank, where
+        every ghost is an image of an owned particle)."""
+        self.fresh = True
+        if self.size == 1:
+            return
+        with event(HALO):
+            got = self.halo.pull(self.xu)
+        self.pos[len(self.ids):] = got if self.all_foreign else got[self.foreign]
+
+    @property
+    def n_own(self):
+        return len(self.ids)
+
+    # --- forces and the fused FIRE step ---------------------------------------------------------
+    def start(self):
+        """Forces at the current positions and the global FireSums (collective).  Positions
+        moved from outside (``xu``) need a ``rebuild()`` first."""
+        return self._forces()
+
+    def _forces(self):
+        if not self.fresh:
+            self._refresh()
+        self._call(kernels.FIRE_FORCES, 0.0, False, 0.0, 1.0, 0.0)
+        return self._reduce()
+
+    def resync(self):
+        """The decomposition redone from the positions alone (new bounds, migration, ghosts,
+        pairs) and the forces and sums recomputed on it (collective): after it the state
+        depends on positions and velocities only, as after a restart from them."""
+        self.rebuild(rebalance=True)
+        return self._forces()
+
+    def step(self, dt, reset, mix_v, mix_f, last):
+        """One FIRE step (see ``parjam_fire_step``): if ``reset`` step half back and zero v;
+        v += dt F; v = mix_v v + mix_f F; x += dt v; then the forces at the new positions and
+        the global FireSums (one ghost refresh, one allreduce).  On one rank the kernel checks
+        the displacement since the last rebuild itself; on several ranks the list is rebuilt
+        when that displacement plus a bound on this step's (from ``last``, the previous sums)
+        could reach half the skin, a decision every rank takes alike without a reduction."""
+        back = -0.5 * dt
+        if self.size == 1:
+            stale = self._call(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, dt, reset, back,
+                               mix_v, mix_f, stale2=(0.5 * self.skin) ** 2)
+            if stale:
+                self.fresh = False
+                self.rebuild()
+                self._call(kernels.FIRE_FORCES, dt, reset, back, mix_v, mix_f)
+            return self._reduce()
+        vmax = 0.0 if reset else last.vmax
+        bound = dt * (mix_v * (vmax + dt * last.fmax) + mix_f * last.fmax)
+        if reset:
+            bound += 0.5 * dt * last.vmax
+        self._call(kernels.FIRE_UPDATE, dt, reset, back, mix_v, mix_f)
+        self.fresh = False
+        if (last.disp + bound) * (1.0 + 1e-6) >= 0.5 * self.skin:
+            self.rebuild()
+        else:
+            self._refresh()
+        self._call(kernels.FIRE_FORCES, dt, reset, back, mix_v, mix_f)
+        return self._reduce()
+
+    def _call(self, mode, dt, reset, back, mix_v, mix_f, stale2=0.0):
+        with event(FORCE):
+            return self.kernel(mode, self.L, dt, reset, back, mix_v, mix_f, stale2, self.alpha,
+                               self.eps, 0, self.n_own)
+
+    def _reduce(self):
+        """The FIRE sums over the ranks: one allreduce of the 7-number buffer (sums of the first
+        four, maxima of the rest)."""
+        if self.size == 1:
+            return FireSums(self.sums)
+        out = np.empty_like(self.sums)
+        with event(ALLREDUCE):
+            self.comm.Allreduce(self.sums, out, op=sum_max_op())
+        return FireSums(out)
+
+    # --- hand-over to row blocks (lazy gathers) ------------------------------------------------
+    def to_blocks(self, ranges, values):
+        """Per-particle ``values`` (n_own, ...) of this rank's rows sent to the contiguous id
+        blocks ``ranges`` (P + 1 ids: PETSc's ownership), sorted by id (collective)."""
+        dest = np.searchsorted(np.asarray(ranges), self.ids, side="right") - 1
+        _, got = send_rows(self.comm, dest, self.ids, {"a": values})
+        return got["a"]
+
+
+def _mpi_max():
+    from mpi4py import MPI
+
+    return MPI.MAX
+
+
+_OP = None
+
+
+def sum_max_op():
+    """MPI op on the FIRE buffer: sums of entries 0-3, maxima of entries 4-6 (commutative)."""
+    global _OP
+    if _OP is None:
+        from mpi4py import MPI
+
+        def combine(inbuf, inoutbuf, datatype):
+            a = np.frombuffer(inbuf, dtype=np.float64)
+            b = np.frombuffer(inoutbuf, dtype=np.float64)
+            b[:4] += a[:4]
+            np.maximum(b[4:], a[4:], out=b[4:])
+
+        _OP = MPI.Op.Create(combine, commute=True)
+    return _OP

@@ -1,0 +1,187 @@
+"""The packing protocol's per-state contact network on the slabs of parjam.net.domain (issue 18):
+what the Jammer asks of every minimised state (energy, pressure, residual forces, mean contact
+force and stiffness, N', Nc - Nc_iso) from the positions each rank holds, with O(N/P) memory.
+
+It is parjam.net.active's construction (``SlabDomain.balanced`` + ``migrate`` to the slabs, one
+ghost exchange, ``half_edges``, iterative ``remove_rattlers``, the parallel ``renumber``), with
+the sums taken the way the serial ``network.analyze`` takes them, so that on one rank every
+number is bit-identical to it (the packing protocol's decisions, hence its files, do not change):
+
+- every contact is summed once, on the owner of its lower-id end (the half-edges with
+  id_i < id_j), in (id_i, id_j) order: the serial contact order.  The separation of such a
+  half-edge is the serial one (``system.pair_separation`` of the wrapped positions, i -> j);
+- the force on a particle is its contacts with lower-id partners (ascending) minus those with
+  higher-id partners (ascending): ``network.particle_forces``' two bincounts, in their order.
+
+On P ranks the per-rank partial sums are allreduced: the numbers agree with the serial ones to
+round-off; counts and rattlers exactly.  ``ActiveEdges`` keeps the half-edges among the
+non-rattlers (active numbers, this rank's rows [lo, hi)) for the distributed Hessian of
+parjam.pack.stability, ordered so that its assembly on one rank is the serial one.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from parjam.net import potential
+from parjam.net.active import half_edges, max_op, remove_rattlers, renumber, row_block
+from parjam.net.domain import SlabDomain, as_mpi
+from parjam.net.network import NetworkNumbers
+
+
+@dataclass
+class SlabState:
+    """One state's particles on the slabs: this rank's rows (wrapped positions, global ids,
+    diameters), sorted by id, and the decomposition."""
+
+    comm: object  # mpi4py
+    dom: SlabDomain
+    L: float
+    x: np.ndarray
+    ids: np.ndarray
+    diam: np.ndarray
+    cutoff: float  # contact search: max diameter (1 + 1e-9), as network.find_contacts
+
+
+def slab_state(comm, x, diam, ids, L):
+    """The rows any rank holds (``x``, ``diam``, global ``ids``) handed to the slabs of a
+    balanced decomposition (collective)."""
+    comm = as_mpi(comm)
+    x = np.asarray(x, dtype=np.float64)
+    dom = SlabDomain.balanced(comm, L, x)
+    x, ids, f = dom.migrate(x, ids, {"diam": np.asarray(diam, dtype=np.float64)})
+    dmax = comm.allreduce(float(f["diam"].max()) if len(ids) else 0.0, op=max_op())
+    return SlabState(comm, dom, float(L), x, ids, f["diam"], dmax * (1.0 + 1e-9))
+
+
+def contact_edges(state, x=None):
+    """Half-edges of every contact at positions ``x`` (default the state's; the rows stay with
+    their owners) as (Contacts in rows of [owned; ghosts], halo, global ids of those rows,
+    mask of the half-edges that carry their contact once: id_i < id_j)."""
+    x = state.x if x is None else x
+    edges, halo, gid = half_edges(state.dom, x, state.diam, state.ids, state.cutoff)
+    return edges, halo, gid, state.ids[edges.i] < gid[edges.j]
+
+
+def pair_forces(edges, alpha, eps):
+    """Force on j from i of each half-edge (i -> j): network.contact_forces' expression."""
+    dv = potential.dV(edges.r, edges.sigma, alpha, eps)
+    return -(dv / edges.r)[:, None] * edges.rij
+
+
+@dataclass
+class ActiveEdges:
+    """The half-edges among non-rattlers in active numbers, owned rows [lo, hi): first the
+    contacts whose owned end is the lower (by (i, j)), then those whose owned end is the higher
+    (by (j, i)): hessian.half_edges_of's order, so one rank assembles the serial matrix.  ``rij``
+    points from the owned end."""
+
+    n: int  # N'
+    lo: int
+    hi: int
+    n_up: int  # the first n_up half-edges have the lower-id end owned
+    i: np.ndarray
+    j: np.ndarray
+    rij: np.ndarray
+    r: np.ndarray
+    sigma: np.ndarray
+    ids: np.ndarray  # global ids of the owned active rows lo..hi-1
+
+
+@dataclass
+class JamNetwork(NetworkNumbers):
+    """The numbers of network.Network the Jammer uses, for a state on the slabs."""
+
+    d: int
+    n: int
+    n_active: int
+    n_contacts: int
+    phi: float
+    alpha: float
+    eps: float
+    energy: float
+    stress: np.ndarray
+    max_force: float
+    mean_force: float
+    mean_stiffness: float  # mean V''(r) over the contacts among non-rattlers (0: none)
+    state: SlabState
+    rattler: np.ndarray  # owned rows
+    active: ActiveEdges
+
+    @property
+    def pressure(self):
+        return float(np.trace(self.stress) / self.d)
+
+    @property
+    def n_rattlers(self):
+        return self.n - self.n_active
+
+
+def build(comm, x, diam, ids, L, alpha, eps=1.0, phi=np.nan):
+    """The JamNetwork of a state from any distribution of its particles (rows ``x``, ``diam``,
+    global ``ids``; collective).  ``phi`` is recorded as given."""
+    st = slab_state(comm, x, diam, ids, L)
+    return network(st, alpha, eps, phi)
+
+
+def network(st, alpha, eps=1.0, phi=np.nan):
+    """The JamNetwork of the SlabState ``st`` (collective); see the module doc for the sums."""
+    comm, d = st.comm, st.x.shape[1]
+    n_own = len(st.ids)
+    edges, halo, gid, once = contact_edges(st)
+    rattler = remove_rattlers(comm, halo, n_own, d, edges)
+    number, lo, hi = renumber(comm, halo, ~rattler)
+    lower = ~once
+    # energy and stress (network.analyze, network.stress_tensor): each contact once
+    c1 = edges.subset(once)
+    energy = potential.energy(c1.r, c1.sigma, alpha, eps).sum()
+    dv = potential.dV(c1.r, c1.sigma, alpha, eps)
+    w = -(dv / c1.r)[:, None, None]
+    stress = (w * c1.rij[:, :, None] * c1.rij[:, None, :]).sum(axis=0)
+    # forces on the owned particles (network.particle_forces' order)
+    f_once = pair_forces(c1, alpha, eps)
+    c2 = edges.subset(lower)
+    f_low = -(potential.dV(c2.r, c2.sigma, alpha, eps) / c2.r)[:, None] * (-c2.rij)
+    force = np.zeros((n_own, d))
+    for a in range(d):
+        force[:, a] = (np.bincount(c2.i, weights=f_low[:, a], minlength=n_own)
+                       - np.bincount(c1.i, weights=f_once[:, a], minlength=n_own))
+    fnorm = np.sqrt(np.einsum("ij,ij->i", force, force))[~rattler]
+    # contacts among non-rattlers, each once, in (i, j) order
+    act = once & (number[edges.i] >= 0) & (number[edges.j] >= 0)
+    ca = edges.subset(act)
+    fsum = np.abs(potential.dV(ca.r, ca.sigma, alpha, eps)).sum()
+    ksum = potential.d2V(ca.r, ca.sigma, alpha, eps).sum()
+    sums = comm.allreduce(np.array([energy, fsum, ksum]))  # one rank: the values themselves
+    nc = comm.allreduce(int(act.sum()))
+    volume = st.L ** d
+    return JamNetwork(
+        d=d, n=comm.allreduce(n_own), n_active=comm.allreduce(hi - lo), n_contacts=nc,
+        phi=phi, alpha=float(alpha), eps=float(eps), energy=float(sums[0]),
+        stress=comm.allreduce(stress) / volume,
+        max_force=comm.allreduce(float(fnorm.max()) if len(fnorm) else 0.0, op=max_op()),
+        mean_force=float(sums[1] / nc) if nc else 0.0,
+        mean_stiffness=float(sums[2] / nc) if nc else 0.0, state=st, rattler=rattler,
+        active=active_edges(edges, number, gid, st.ids, lo, hi, comm.allreduce(hi - lo),
+                            ~rattler))
+
+
+def active_edges(edges, number, gid, ids, lo, hi, n_active, alive):
+    """ActiveEdges from the contact half-edges and the active numbers (see its doc)."""
+    act = (number[edges.i] >= 0) & (number[edges.j] >= 0)
+    up = act & (ids[edges.i] < gid[edges.j])
+    down = np.flatnonzero(act & ~up)
+    # the contacts whose owned end is the higher, in (lower id, higher id) order
+    down = down[np.lexsort((ids[edges.i[down]], gid[edges.j[down]]))]
+    take = np.concatenate([np.flatnonzero(up), down])
+    return ActiveEdges(n_active, lo, hi, int(up.sum()), number[edges.i[take]],
+                       number[edges.j[take]], edges.rij[take], edges.r[take], edges.sigma[take],
+                       ids[alive])
+
+
+def from_packing(comm, pack):
+    """The JamNetwork of a packing every rank holds (tests and small systems): each rank starts
+    from its row block (active.row_block), as if it had read only that."""
+    start, stop = row_block(pack.n, comm)
+    return build(comm, pack.pos[start:stop], pack.diam[start:stop],
+                 np.arange(start, stop, dtype=np.int64), pack.L, pack.alpha, pack.eps, pack.phi)

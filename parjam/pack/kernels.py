@@ -1,0 +1,364 @@
+"""The compiled kernels (``_kernels.c``): the pair forces and the fused FIRE step, loaded through
+ctypes.  A numpy implementation with the same results (to round-off) serves only as a fall-back,
+when no compiled library is available or ``PARJAM_KERNELS=numpy`` is set; it prints a one-line
+warning (once, on rank 0) when first used, since it is several times slower.
+
+The library is built at install time (``pip install`` / ``scripts/setup-env``: setup.py's
+extension ``parjam.pack._kernels_lib``, next to this file).  It carries the SHA-256 of the source it
+was built from; when that is not this ``_kernels.c`` (an edited checkout) or there is none, the
+library is built once per source version into ``$PARJAM_CACHE`` (default ``~/.cache/parjam``)
+with the system's C compiler, under a temporary name renamed into place, so concurrent MPI
+ranks can race for it safely.
+"""
+
+import ctypes
+import glob
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+
+import numpy as np
+
+from parjam.net import potential
+from parjam.net.system import pair_separation
+
+_HERE = os.path.dirname(os.path.abspath(__file__))
+_SRC = os.path.join(_HERE, "_kernels.c")
+# no -ffast-math: the summation order and IEEE semantics are part of the results
+CFLAGS = ["-O2", "-fPIC", "-fno-fast-math"]
+_lib = None
+_tried = False
+_warned = False
+_why = ""
+
+# modes of fire_step (enum in _kernels.c)
+FIRE_UPDATE = 1
+FIRE_FORCES = 2
+# fire_step's sums: energy, F.v, |F|^2, |v|^2, max|F_i|^2, max|v_i|^2, max displacement^2
+N_SUMS = 7
+
+
+def source_sha():
+    """SHA-256 (hex) of ``_kernels.c``: compiled into the library as PARJAM_SRC_SHA."""
+    return hashlib.sha256(open(_SRC, "rb").read()).hexdigest()
+
+
+def _cache_dir():
+    return os.environ.get("PARJAM_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "parjam"))
+
+
+def compile_library(target, cc=None):
+    """Compile ``_kernels.c`` into the shared library ``target`` (atomically: a temporary file
+    renamed into place).  Returns None on success, else the compiler's message."""
+    cc = cc or os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        return "no C compiler (cc or gcc) found"
+    folder = os.path.dirname(os.path.abspath(target))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=folder)
+    os.close(fd)
+    cmd = [cc, *CFLAGS, "-shared", f'-DPARJAM_SRC_SHA="{source_sha()}"', "-o", tmp, _SRC, "-lm"]
+    try:
+        res = subprocess.run(cmd, capture_output=True, text=True)
+    except OSError as exc:
+        os.remove(tmp)
+        return str(exc)
+    if res.returncode != 0:
+        os.remove(tmp)
+        return res.stderr.strip()[:200] or f"{cc} failed"
+    os.replace(tmp, target)
+    return None
+
+
+def _installed():
+    """The library built at install time, if it was built from this source."""
+    for path in sorted(glob.glob(os.path.join(_HERE, "_kernels_lib*.so"))):
+        try:
+            lib = ctypes.CDLL(path)
+            sha = ctypes.c_char_p.in_dll(lib, "parjam_src_sha").value.decode()
+        except (OSError, ValueError):
+            continue
+        if sha == source_sha():
+            return lib
+    return None
+
+
+def _cached():
+    """The library built into the cache on first use (None if that fails)."""
+    global _why
+    target = os.path.join(_cache_dir(), f"_kernels-{source_sha()[:16]}.so")
+    if not os.path.exists(target):
+        err = compile_library(target)
+        if err is not None:
+            _why = f"could not compile the kernels ({err})"
+            return None
+    return ctypes.CDLL(target)
+
+
+def library():
+    """The loaded kernel library, or None (numpy fallback)."""
+    global _lib, _tried, _why
+    if _tried:
+        return _lib
+    _tried = True
+    if os.environ.get("PARJAM_KERNELS", "").lower() == "numpy":
+        _why = "PARJAM_KERNELS=numpy"
+        return None
+    try:
+        lib = _installed() or _cached()
+    except OSError as exc:
+        _why, lib = f"could not load the kernels ({exc})", None
+    if lib is None:
+        return None
+    ptr = np.ctypeslib.ndpointer
+    f64, i64 = ptr(np.float64, flags="C"), ptr(np.int64, flags="C")
+    w64 = ptr(np.float64, flags="C,W")
+    f = lib.parjam_pair_forces
+    f.restype = ctypes.c_double
+    f.argtypes = [ctypes.c_int64, i64, i64, f64, f64, ctypes.c_double, ctypes.c_int,
+                  ctypes.c_double, ctypes.c_double, ctypes.c_int64, ctypes.c_int64, w64]
+    s = lib.parjam_fire_step
+    s.restype = ctypes.c_int
+    dbl = ctypes.c_double
+    s.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int, w64, w64, w64, f64, dbl, dbl,
+                  ctypes.c_int, dbl, dbl, dbl, dbl, ctypes.c_int64, i64, i64, f64, f64, dbl, dbl,
+                  ctypes.c_int64, ctypes.c_int64, w64]
+    c = lib.parjam_cell_pairs
+    c.restype = ctypes.c_int64
+    wi64 = ptr(np.int64, flags="C,W")
+    c.argtypes = [ctypes.c_int64, ctypes.c_int, f64, ctypes.c_double, ctypes.c_double,
+                  ctypes.c_int, ctypes.c_int64, ctypes.c_int64, wi64, wi64, wi64, w64,
+                  ctypes.c_int64, wi64, wi64, ctypes.POINTER(ctypes.c_int)]
+    sl = lib.parjam_slab_pairs
+    sl.restype = ctypes.c_int64
+    sl.argtypes = [ctypes.c_int64, ctypes.c_int, f64, dbl, dbl, dbl, dbl, ctypes.c_int64,
+                   ctypes.c_int64, i64, i64, i64, ctypes.c_int64, i64, wi64, wi64, wi64, w64,
+                   wi64, ctypes.c_int64, wi64, wi64]
+    _lib = lib
+    return _lib
+
+
+def reset():
+    """Forget the loaded library (the next call looks again, e.g. after PARJAM_KERNELS changed)."""
+    global _lib, _tried, _warned, _why
+    _lib, _tried, _warned, _why = None, False, False, ""
+
+
+def _fallback():
+    """Warn once (rank 0) that the numpy kernels are in use."""
+    global _warned
+    if _warned:
+        return
+    _warned = True
+    from mpi4py import MPI
+
+    if MPI.COMM_WORLD.Get_rank() == 0:
+        print(f"parjam: warning: using the slow numpy force kernels ({_why or 'no library'})",
+              file=sys.stderr, flush=True)
+
+
+def pair_forces(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
+    """Forces on the owned particles [lo, hi) into ``out`` ((hi-lo, d), C order); returns the
+    energy of the pairs whose first particle is owned."""
+    lib = library()
+    if lib is not None:
+        return lib.parjam_pair_forces(len(pi), pi, pj, pos, diam, L, pos.shape[1], alpha, eps,
+                                      lo, hi, out)
+    _fallback()
+    return pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out)
+
+
+def pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
+    """The numpy version of the compiled pair-force kernel (same arguments, same result): used
+    when the C kernel is not built, and as its reference in the tests."""
+    rij = pair_separation(pos[pi], pos[pj], L)
+    r = np.sqrt(np.einsum("ij,ij->i", rij, rij))
+    sigma = 0.5 * (diam[pi] + diam[pj])
+    c = r < sigma
+    i, j, rij, r, sigma = pi[c], pj[c], rij[c], r[c], sigma[c]
+    fj = -(potential.dV(r, sigma, alpha, eps) / r)[:, None] * rij
+    own_i = (i >= lo) & (i < hi)
+    own_j = (j >= lo) & (j < hi)
+    idx = np.concatenate([i[own_i], j[own_j]]) - lo
+    for a in range(pos.shape[1]):
+        w = np.concatenate([-fj[own_i, a], fj[own_j, a]])
+        out[:, a] = np.bincount(idx, weights=w, minlength=hi - lo)
+    return potential.energy(r[own_i], sigma[own_i], alpha, eps).sum()
+
+
+def fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi, pj, pos, diam,
+              alpha, eps, lo, hi, sums):
+    """One fused FIRE step on the owned particles (x, v, f, ref: (n_own, d) C arrays); see
+    ``parjam_fire_step`` in _kernels.c for the modes and the seven ``sums``.  Returns 1 when the
+    update found the neighbour list stale (no forces computed), else 0."""
+    lib = library()
+    if lib is not None:
+        return lib.parjam_fire_step(mode, len(x), x.shape[1], x, v, f, ref, L, dt, int(reset),
+                                    back, mix_v, mix_f, stale2, len(pi), pi, pj, pos, diam,
+                                    alpha, eps, lo, hi, sums)
+    _fallback()
+    if mode & FIRE_UPDATE:
+        if reset:
+            x += back * v
+            v[:] = 0.0
+        v += dt * f
+        v[:] = mix_f * f + mix_v * v
+        x += dt * v
+        if stale2 > 0.0 and _max_disp2(x, ref, L) >= stale2:
+            return 1
+    if mode & FIRE_FORCES:
+        e = pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, f)
+        f2 = np.einsum("ij,ij->i", f, f)
+        v2 = np.einsum("ij,ij->i", v, v)
+        sums[:] = (e, np.vdot(f, v), f2.sum(), v2.sum(), f2.max(initial=0.0),
+                   v2.max(initial=0.0), _max_disp2(x, ref, L))
+    return 0
+
+
+class FireKernel:
+    """``fire_step`` bound to its arrays (x, v, f, ref: (n_own, d); pi, pj; pos; diam; sums):
+    their addresses are taken once, so a call passes scalars only (ctypes' per-array checks cost
+    ~40 us a step, a tenth of a step at N = 4096).  The arrays must stay alive and in place
+    while it is used (ForceField keeps one per neighbour list and pair of Vecs)."""
+
+    def __init__(self, x, v, f, ref, pi, pj, pos, diam, sums):
+        self.arrays = (x, v, f, ref, pi, pj, pos, diam, sums)
+        kinds = (np.float64,) * 4 + (np.int64,) * 2 + (np.float64,) * 3
+        for a, kind in zip(self.arrays, kinds):
+            if a.dtype != kind or not a.flags.c_contiguous:
+                raise ValueError("FireKernel needs C-contiguous float64/int64 arrays")
+        for a in (x, v, f, sums):
+            if not a.flags.writeable:
+                raise ValueError("FireKernel writes x, v, f and sums")
+        self.nown, self.d, self.npairs = len(x), x.shape[1], len(pi)
+        lib = library()
+        self.fn = None
+        if lib is not None:
+            fn = lib["parjam_fire_step"]  # a new function object: its own argtypes
+            vp, dbl, i64 = ctypes.c_void_p, ctypes.c_double, ctypes.c_int64
+            fn.restype = ctypes.c_int
+            fn.argtypes = [ctypes.c_int, i64, ctypes.c_int, vp, vp, vp, vp, dbl, dbl,
+                           ctypes.c_int, dbl, dbl, dbl, dbl, i64, vp, vp, vp, vp, dbl, dbl, i64,
+                           i64, vp]
+            self.fn = fn
+            self.ptr = [a.ctypes.data for a in self.arrays]
+
+    def __call__(self, mode, L, dt, reset, back, mix_v, mix_f, stale2, alpha, eps, lo, hi):
+        if self.fn is None:
+            x, v, f, ref, pi, pj, pos, diam, sums = self.arrays
+            return fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi,
+                             pj, pos, diam, alpha, eps, lo, hi, sums)
+        x, v, f, ref, pi, pj, pos, diam, sums = self.ptr
+        return self.fn(mode, self.nown, self.d, x, v, f, ref, L, dt, 1 if reset else 0, back,
+                       mix_v, mix_f, stale2, self.npairs, pi, pj, pos, diam, alpha, eps, lo, hi,
+                       sums)
+
+
+def _max_disp2(x, ref, L):
+    dx = x - ref
+    dx -= L * np.rint(dx / L)
+    return np.einsum("ij,ij->i", dx, dx).max(initial=0.0)
+
+
+def cell_pairs(pos, L, cutoff, lo, hi):
+    """The pairs i < j with |x_j - x_i| <= cutoff (minimum image) and i or j in [lo, hi),
+    sorted by (i, j), from a cell search in compiled code over positions ``pos`` folded
+    into [0, L) (all n, (n, d)).  None when there is no compiled library or the box holds fewer
+    than 3 cells of edge >= cutoff per direction (then parjam.net.system's k-d tree serves)."""
+    got = cell_pair_lists(pos, L, cutoff, lo, hi)
+    return None if got is None else np.stack(got, axis=1)
+
+
+def cell_pair_lists(pos, L, cutoff, lo, hi, cap=None):
+    """cell_pairs as two arrays (pi, pj) (the engine's form on one rank); ``cap``: the expected
+    number of pairs (more are found by a second pass)."""
+    lib = library()
+    n, d = pos.shape
+    nc = int(L // cutoff) if cutoff > 0 else 0
+    if lib is None or nc < 3 or d not in (2, 3) or nc ** d > 8 * n + 1000:
+        return None
+    pos = np.ascontiguousarray(pos, dtype=np.float64)
+    start = np.empty(nc ** d + 1, dtype=np.int64)
+    order, cellof = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    sp = np.empty((n, d))
+    cap = 40 * max(hi - lo, 1) + 1024 if cap is None else int(cap)
+    ordered = ctypes.c_int(0)
+    while True:
+        pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
+        got = lib.parjam_cell_pairs(n, d, pos, L, cutoff, nc, lo, hi, start, order, cellof,
+                                    sp, cap, pi, pj, ctypes.byref(ordered))
+        if got >= 0:
+            break
+        cap = -got
+    if ordered.value:  # one rank (or no ghost first in a pair): already in (i, j) order
+        if got < 0.7 * cap:  # a loose first guess: no idle capacity kept
+            return pi[:got].copy(), pj[:got].copy()
+        return pi[:got], pj[:got]
+    key = np.sort(pi[:got] * n + pj[:got])
+    return key // n, key % n
+
+
+def slab_pairs(pos, L, cutoff, row, gid, kind, low, cap=None):
+    """The pairs of one slab's search points (parjam.pack.engine): ``pos`` (n, d) open along axis 0,
+    folded into [0, L) along the others; ``kind`` 0 for owned particles, 1 for images of owned
+    ones across the periodic boundary, 2 for other ranks' ghosts; ``low`` the points of kinds 0
+    and 2 in global-id order.  Returns (pi, pj), rows ``row[.]`` of the pairs closer than
+    ``cutoff`` with an owned end, each physical pair once, in global (i, j) order (see
+    ``parjam_slab_pairs``).  ``cap``: the expected number of pairs (e.g. the last list's, with
+    a margin; more are found by a second pass).  Compiled cells; the numpy fallback uses a k-d
+    tree."""
+    pos = np.ascontiguousarray(pos, dtype=np.float64)
+    n, d = pos.shape
+    row, gid, kind, low = (np.ascontiguousarray(a, dtype=np.int64) for a in (row, gid, kind, low))
+    if n == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    x0min = float(pos[:, 0].min())
+    span = float(pos[:, 0].max()) - x0min
+    w = cutoff
+    while True:  # cells of edge >= cutoff, at most ~4 per point (a dilute box: coarser cells)
+        nc = max(1, int(L // w))
+        nx = max(1, int(span // w))
+        if nx * nc ** (d - 1) <= 4 * n + 64:
+            break
+        w *= 1.25
+    w0 = span / nx * (1.0 + 1e-12) if span > 0 else 1.0
+    lib = library()
+    if lib is None:
+        _fallback()
+        return _slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low)
+    start = np.empty(nx * nc ** (d - 1) + 1, dtype=np.int64)
+    order, cellof = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    sp, sg = np.empty((n, d)), np.empty(n, dtype=np.int64)
+    cap = 4 * n + 1024 if cap is None else int(cap)
+    while True:
+        pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
+        got = lib.parjam_slab_pairs(n, d, pos, L, cutoff, x0min, w0, nx, nc, row, gid, kind,
+                                    len(low), low, start, order, cellof, sp, sg, cap, pi, pj)
+        if got >= 0:
+            if got < 0.7 * cap:  # a loose first guess: no idle capacity kept
+                return pi[:got].copy(), pj[:got].copy()
+            return pi[:got], pj[:got]
+        cap = -got
+
+
+def _slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low):
+    """slab_pairs by a k-d tree (the same pairs in the same order)."""
+    from scipy.spatial import cKDTree
+
+    pts = pos.copy()
+    pts[:, 0] -= pts[:, 0].min()
+    box = np.concatenate(([pts[:, 0].max() + 2.0 * cutoff + 1.0], np.full(pos.shape[1] - 1, L)))
+    pts = np.minimum(pts, np.nextafter(box, 0))
+    pr = cKDTree(pts, boxsize=box).query_pairs(cutoff, output_type="ndarray").astype(np.int64)
+    a, b = pr[:, 0], pr[:, 1]
+    swap = gid[a] > gid[b]
+    a, b = np.where(swap, b, a), np.where(swap, a, b)
+    keep = (gid[a] < gid[b]) & (kind[a] != 1) & ((kind[a] == 0) | (kind[b] == 0))
+    a, b = a[keep], b[keep]
+    place = np.empty(len(gid), dtype=np.int64)
+    place[low] = np.arange(len(low))
+    o = np.lexsort((gid[b], place[a]))
+    return row[a[o]], row[b[o]]

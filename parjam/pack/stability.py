@@ -1,0 +1,305 @@
+"""Is a force-balanced packing a stable minimum?  The lowest curvature of the full Hessian on the
+non-rattlers, and the direction to leave a saddle along.
+
+A state with max|F| below ftol can still be a saddle: near jamming the stress term of Eq. (1),
+(V'(r)/r)(I - n n^T), is negative for repulsive contacts, so a network with too few contacts
+(Nc < Nc_iso, blocked e.g. by a near-contact at a gap of ~1e-10) has modes of negative curvature
+~ -p.  The check counts the eigenvalues of the full dynamical matrix D = M + M' (Eq. (1)) of
+the non-rattlers below -s, where s is a small multiple of its round-off level
+(SHIFT_ULPS * machine epsilon * ||D||_inf): the inertia (Sylvester's law) of an LDL^T
+factorisation of D + s I by MUMPS (parjam.vib.factor), one factorisation, on any number of ranks.
+The d uniform translations are exact zero modes and sit at +s, above the threshold.
+
+A state is *stable* when no eigenvalue lies below -s and it has Nc >= Nc_iso contacts among
+its non-rattlers (a rigid network).  For an unstable one, ``softest_direction`` returns the
+eigenvector of the lowest non-translational eigenvalue (SLEPc Krylov-Schur with
+shift-and-invert at a target just below it, found from inertias, options prefix
+``stability_``), which the packing protocol (parjam.pack.packing) follows out of the saddle before
+minimising again.
+
+Everything is distributed (issue 18): the state is a parjam.pack.jamnet.JamNetwork (each rank its
+slab of particles and the half-edges of their contacts), D is assembled from those half-edges
+into block rows [lo, hi) of the active numbering (hessian.assemble(rows=...)), the softest
+direction stays a distributed vector mapped back onto the owned particles, and the escape
+searches move the owned particles and sum the energies of their contacts (one allreduce per
+trial).  On one rank the matrix, its norm and every energy are the serial ones bitwise (the
+half-edges come in the serial order, parjam.pack.jamnet), so the protocol takes the same path.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from parjam import env
+from parjam.net import potential
+from parjam.pack import jamnet
+from parjam.vib import factor, hessian
+from parjam.net.active import max_op, min_op
+from parjam.net.system import pair_separation, wrap
+
+SHIFT_ULPS = 100.0  # s = SHIFT_ULPS * eps_machine * ||D||_inf
+ESCAPE_MAX = 0.05  # escape searches stop at this displacement (in smallest diameters)
+PREFIX = "stability_"
+
+
+@dataclass
+class Curvature:
+    """Result of one stability check of a packing."""
+
+    n_negative: int  # eigenvalues of D (non-rattlers) below -shift; -1: not computed
+    shift: float
+    excess: int  # Nc - Nc_iso
+    n_active: int
+
+    @property
+    def stable(self):
+        return self.n_negative == 0 and self.excess >= 0 and self.n_active > 0
+
+
+@dataclass
+class ActiveHessian:
+    """This rank's block rows [lo, hi) of the full dynamical matrix of the non-rattlers (active
+    numbers 0..N'-1), from the half-edges of a JamNetwork."""
+
+    n: int
+    d: int
+    edges: jamnet.ActiveEdges
+    blocks: np.ndarray
+    norm: float  # ||D||_inf (global)
+
+    def matrix(self, comm, shift=0.0):
+        e = self.edges
+        return hessian.assemble(comm, self.n, self.d, e.i, e.j, self.blocks, shift,
+                                rows=(e.lo, e.hi))
+
+
+def active_hessian(net):
+    """The ActiveHessian of a JamNetwork (collective: one allreduce for the norm)."""
+    e = net.active
+    blocks = hessian.contact_blocks(e.rij, e.r, e.sigma, net.alpha, net.eps, "full")
+    # ||D||_inf <= 2 max_i sum_j ||K_ij||_inf (diagonal block plus the off-diagonal ones); the
+    # row sums taken as the serial bincounts over (i, j) then over (j, i) take them
+    rowsum = np.abs(blocks).sum(axis=2).max(axis=1) if len(blocks) else np.zeros(0)
+    rows, m = e.i - e.lo, e.hi - e.lo
+    per = (np.bincount(rows[:e.n_up], rowsum[:e.n_up], minlength=m)
+           + np.bincount(rows[e.n_up:], rowsum[e.n_up:], minlength=m))
+    top = float(per.max()) if len(per) else 0.0
+    norm = net.state.comm.allreduce(top, op=max_op())
+    return ActiveHessian(e.n, net.d, e, blocks, 2.0 * norm)
+
+
+def shift_for(norm):
+    return SHIFT_ULPS * np.finfo(np.float64).eps * max(norm, np.finfo(np.float64).tiny)
+
+
+def count_below(comm, H, sigma):
+    """Eigenvalues of the active Hessian below sigma (< 0): negative pivots of the MUMPS LDL^T
+    of D - sigma I; without MUMPS, dense LAPACK on every rank (small systems only)."""
+    PETSc = env.petsc()
+    if not env.has_mumps():
+        return count_below_dense(comm, H, sigma)
+    A = H.matrix(comm, -sigma)
+    ksp = PETSc.KSP().create(comm=comm)
+    try:
+        ksp.setOptionsPrefix(PREFIX)
+        factor.direct_cholesky(ksp)
+        ksp.setOperators(A)
+        ksp.setFromOptions()
+        factor.exact_inertia(ksp.getPC(), inertia_only=True)
+        ksp.setUp()
+        count = factor.negative_pivots(ksp.getPC())
+    finally:
+        ksp.destroy()
+        A.destroy()
+    return -1 if count is None else int(count)
+
+
+def count_below_dense(comm, H, sigma):
+    """The dense fall-back of ``count_below`` (no MUMPS): every contact once (the half-edges
+    whose owned end has the lower id) gathered, LAPACK on every rank; small systems only."""
+    e, k = H.edges, H.edges.n_up
+    got = comm.tompi4py().allgather((e.i[:k], e.j[:k], H.blocks[:k]))
+    i, j, b = (np.concatenate(p) for p in zip(*got))
+    D = hessian.dense_hessian(H.n, H.d, i, j, b.reshape(-1, H.d, H.d))
+    return int(np.sum(np.linalg.eigvalsh(D) < sigma))
+
+
+def check(comm, net):
+    """Curvature of the state of JamNetwork ``net`` (collective on comm)."""
+    if net.n_active == 0:
+        return Curvature(0, 0.0, net.excess, 0)
+    H = active_hessian(net)
+    s = shift_for(H.norm)
+    return Curvature(count_below(comm, H, -s), s, net.excess, net.n_active)
+
+
+def softest_direction(comm, net, curvature):
+    """Displacement of the owned particles (rows of ``net.state``) along the lowest
+    non-translational eigenvector of the active Hessian, zero on rattlers, scaled to a largest
+    particle displacement of 1 over all ranks, and its eigenvalue; (None, nan) if SLEPc does
+    not find it.  The target lies below the lowest eigenvalue (from inertias at -s, -10 s,
+    -100 s ...), so the eigenvalue nearest it is the lowest."""
+    H = active_hessian(net)
+    s = curvature.shift
+    target = -s
+    if curvature.n_negative > 0:
+        target = -10.0 * s
+        while count_below(comm, H, target) > 0 and target > -1e6 * max(H.norm, 1.0):
+            target *= 10.0
+    vec, lam = nearest_mode(comm, H, target)
+    if vec is None:
+        return None, np.nan
+    out = np.zeros((len(net.state.ids), net.d))
+    out[~net.rattler] = vec.reshape(-1, net.d)
+    norms = np.sqrt(np.einsum("ij,ij->i", out, out))
+    top = net.state.comm.allreduce(float(norms.max()) if len(norms) else 0.0, op=max_op())
+    return out / top, lam
+
+
+def nearest_mode(comm, H, target):
+    """Eigenpair of the active Hessian nearest ``target``, translations deflated: this rank's
+    rows [lo, hi) of the eigenvector (a copy) and the eigenvalue."""
+    SLEPc = env.slepc()
+    A = H.matrix(comm)
+    deflation = []
+    for a in range(H.d):
+        v = A.createVecRight()
+        arr = v.getArray()
+        arr[:] = 0.0
+        arr.reshape(-1, H.d)[:, a] = 1.0 / np.sqrt(H.n)
+        deflation.append(v)
+    eps = SLEPc.EPS().create(comm)
+    try:
+        eps.setOperators(A)
+        eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
+        eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
+        eps.setDimensions(nev=1)
+        eps.setTarget(target)
+        eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
+        eps.setTolerances(tol=1e-8, max_it=500)
+        eps.setDeflationSpace(deflation)
+        st = eps.getST()
+        st.setType("sinvert")
+        factor.direct_cholesky(st.getKSP(), fallback="lu")
+        eps.setOptionsPrefix(PREFIX)
+        eps.setFromOptions()
+        eps.solve()
+        if eps.getConverged() < 1:
+            return None, np.nan
+        xr = A.createVecRight()
+        lam = eps.getEigenpair(0, xr).real
+        vec = np.array(xr.array_r)
+        xr.destroy()
+        return vec, float(lam)
+    finally:
+        eps.destroy()
+        for v in deflation:
+            v.destroy()
+        A.destroy()
+
+
+def moved(state, direction, t):
+    """The owned rows of ``state`` displaced by t * direction, wrapped into the box."""
+    return wrap(state.x + t * direction, state.L)
+
+
+def escape_candidates(net, direction):
+    """Displacements t along ``direction`` (owned rows of ``net.state``, unit max-norm) to
+    leave a saddle from, best first:
+
+    - on each side, the displacement where the first new contact closes (geometric search, then
+      bisection to round-off): a saddle blocked by a near-contact (Nc = Nc_iso - 1, a gap of
+      ~1e-10 .. 1e-8) becomes a stable minimum with that contact.  Its equilibrium overlap is
+      ~ |lambda| * gap / k ~ p * gap, below the round-off of 1 - r/sigma (1e-16) at dphi <= 1e-8:
+      double precision holds it as a contact of a few ulps, balanced to far below --ftol;
+    - the lowest energy along the line (doubling steps, then golden section): a saddle whose
+      descent is not blocked nearby.
+    Sides are ordered by the energy at their new contact.  Every trial moves the owned
+    particles, hands them to their slabs and evaluates their contacts there (collective).
+    ``moved(net.state, direction, t)`` gives the positions of a candidate."""
+    st = net.state
+    dmin = st.comm.allreduce(float(st.diam.min()) if len(st.diam) else np.inf, op=min_op())
+    lim = ESCAPE_MAX * dmin
+    trials = LineTrials(st, direction, net.alpha, net.eps)
+    touch = []
+    for sign in (1.0, -1.0):
+        t_lo, t = 0.0, 1e-15
+        while t <= lim and not trials.new_contact(sign * t):
+            t_lo, t = t, 2.0 * t
+        if t > lim:
+            continue
+        t_hi = t
+        for _ in range(80):
+            mid = 0.5 * (t_lo + t_hi)
+            if mid in (t_lo, t_hi):
+                break
+            if trials.new_contact(sign * mid):
+                t_hi = mid
+            else:
+                t_lo = mid
+        touch.append((trials.energy(sign * t_hi), sign * t_hi))
+    touch.sort(key=lambda c: c[0])
+    return [t for _, t in touch] + [_line_minimum(trials.energy, lim)]
+
+
+class LineTrials:
+    """Energies and new contacts of a state displaced along a direction: the owned rows moved,
+    migrated to their slabs (with their unmoved positions along), and their contacts there."""
+
+    def __init__(self, state, direction, alpha, eps):
+        self.state, self.direction = state, direction
+        self.alpha, self.eps = alpha, eps
+
+    def _contacts(self, t):
+        st = self.state
+        x, ids, f = st.dom.migrate(moved(st, self.direction, t), st.ids,
+                                   {"diam": st.diam, "base": st.x})
+        here = jamnet.SlabState(st.comm, st.dom, st.L, x, ids, f["diam"], st.cutoff)
+        edges, halo, _, once = jamnet.contact_edges(here)
+        return edges.subset(once), halo, f["base"]
+
+    def energy(self, t):
+        """Total energy at displacement t (each contact once, summed over the ranks)."""
+        c, _, _ = self._contacts(t)
+        e = potential.energy(c.r, c.sigma, self.alpha, self.eps).sum()
+        return float(self.state.comm.allreduce(e))
+
+    def new_contact(self, t):
+        """Whether some contact at displacement t was not one at t = 0 (the same separation
+        test as the contacts themselves, on the unmoved positions)."""
+        c, halo, base = self._contacts(t)
+        pts = np.concatenate([base, halo.pull(base)])
+        rij = pair_separation(pts[c.i], pts[c.j], self.state.dom.L)
+        r0 = np.sqrt(np.einsum("ij,ij->i", rij, rij))
+        return bool(self.state.comm.allreduce(int(np.any(r0 >= c.sigma)), op=max_op()))
+
+
+def _line_minimum(energy, lim):
+    """t of the lowest energy(t) found on either side: doubling steps from 1e-12 until the
+    energy rises, then a golden-section search in the last bracket."""
+    e0 = energy(0.0)
+    best = (e0, 0.0)
+    for sign in (1.0, -1.0):
+        ts, es, t = [0.0], [e0], sign * 1e-12
+        while abs(t) <= lim:
+            ts.append(t)
+            es.append(energy(t))
+            if es[-1] < best[0]:
+                best = (es[-1], t)
+            if es[-1] > es[-2] and len(ts) > 2 and es[-2] < e0:
+                break
+            t *= 2.0
+        if best[1] in ts[1:-1]:
+            k = ts.index(best[1])
+            a, b = ts[k - 1], ts[k + 1]
+            for _ in range(40):
+                m1, m2 = b - 0.618 * (b - a), a + 0.618 * (b - a)
+                e1, e2 = energy(m1), energy(m2)
+                for e, tt in ((e1, m1), (e2, m2)):
+                    if e < best[0]:
+                        best = (e, tt)
+                if e1 < e2:
+                    b = m2
+                else:
+                    a = m1
+    return best[1]

@@ -1,0 +1,200 @@
+"""The packing engine on the spatial decomposition (parjam.pack.engine.SlabEngine): its forces and
+energy against the serial kernel on all pairs, after migrations across slab and periodic
+boundaries, in a box of fewer cells than ranks, with a rebuild that one rank's particle
+triggers, and FIRE on 1 rank against FIRE on all ranks (3 ranks: the serial run reruns this
+file under $PARJAM_MPIRUN -n 3)."""
+
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from parjam.pack import kernels
+from parjam.pack.engine import SlabEngine
+from parjam.pack.fire import FireParams, fire
+from parjam.pack.forces import ForceField
+from parjam.pack.packing import random_packing
+from parjam.net.system import neighbour_pairs
+from parjam.testing.gather import gather
+
+from conftest import run_on_ranks
+
+COMM = MPI.COMM_WORLD
+
+
+def serial(pos, diam, L, alpha):
+    """Forces and energy of every particle from all pairs (the serial kernel)."""
+    pairs = neighbour_pairs(np.mod(pos, L), L, diam.max())
+    out = np.zeros_like(pos)
+    e = kernels.pair_forces(np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1]),
+                            np.ascontiguousarray(pos), diam, L, alpha, 1.0, 0, len(pos), out)
+    return out, e
+
+
+def strided(pack, v=None):
+    """This rank's strided share of the rows (not a spatial one)."""
+    mine = np.arange(COMM.rank, pack.n, COMM.size)
+    return pack.pos[mine], mine, pack.diam[mine], None if v is None else v[mine]
+
+
+def engine(pack, skin=None, v=None):
+    x, ids, diam, vv = strided(pack, v)
+    skin = 0.2 * pack.diam.min() if skin is None else skin
+    return SlabEngine(COMM, pack.L, pack.alpha, 1.0, skin, x, ids, diam, vv)
+
+
+def gathered(eng, values):
+    """(N, ...) values of the engine's rows on every rank (test only)."""
+    ids = np.concatenate(COMM.allgather(eng.ids))
+    vals = np.concatenate(COMM.allgather(np.asarray(values)))
+    out = np.empty_like(vals)
+    out[ids] = vals
+    assert np.array_equal(np.sort(ids), np.arange(len(ids)))  # every particle once
+    return out
+
+
+def check(eng, pos, diam, L, alpha, s):
+    f_ref, e_ref = serial(pos, diam, L, alpha)
+    # the same pairs summed in the same order: bitwise
+    np.testing.assert_array_equal(gathered(eng, eng.f), f_ref)
+    assert s.energy == pytest.approx(e_ref, rel=1e-13, abs=1e-300)
+    assert s.f2 == pytest.approx((f_ref ** 2).sum(), rel=1e-13, abs=1e-300)
+
+
+def quenched(d, poly, n, phi, steps, seed=3):
+    pack = random_packing(d, n, phi, 2.0, poly, 1.4, np.random.default_rng(seed))
+    if steps:
+        ff = ForceField(_petsc_self(), pack.diam, pack.L, d, 2.0)
+        ff.set_positions(pack.pos)
+        fire(ff, 1e-12, params=FireParams(max_steps=steps))
+        pack.pos = np.array(gather(ff))
+        ff.destroy()
+    return pack
+
+
+def _petsc_self():
+    from parjam import env
+
+    return env.petsc().COMM_SELF
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("poly", ["mono", "bi"])
+@pytest.mark.parametrize("steps", [0, 400])
+def test_forces_and_energy_equal_the_serial_kernel(d, poly, steps):
+    """Random (steps = 0) and quenched (near a jammed minimum: many rattlers, contacts near
+    their edge) states."""
+    pack = quenched(d, poly, 300 if d == 2 else 400, 0.88 if d == 2 else 0.68, steps)
+    eng = engine(pack)
+    s = eng.start()
+    check(eng, pack.pos, pack.diam, pack.L, pack.alpha, s)
+    assert COMM.allreduce(eng.n_own) == pack.n
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_particles_migrate_across_slab_and_periodic_boundaries(d):
+    pack = quenched(d, "bi", 300, 0.85 if d == 2 else 0.65, 0)
+    eng = engine(pack)
+    eng.start()
+    before = eng.n_migrated
+    # move everything by 0.37 L along the slab axis and a bit along the others: most particles
+    # change slab, a third crosses the periodic boundary
+    shift = np.full(d, 0.013 * pack.L)
+    shift[0] = 0.37 * pack.L
+    eng.xu += shift
+    eng.rebuild()
+    s = eng.start()
+    check(eng, pack.pos + shift, pack.diam, pack.L, pack.alpha, s)
+    moved = COMM.allreduce(eng.n_migrated - before)
+    assert moved > (pack.n // 4 if COMM.size > 1 else -1)
+    # the slab owns what lies in it (positions wrapped)
+    xw = np.mod(eng.xu[:, 0], pack.L)
+    b = eng.domain.bounds
+    assert np.all((xw >= b[COMM.rank]) & (xw <= b[COMM.rank + 1]))
+
+
+def test_a_box_of_fewer_cells_than_ranks():
+    """A box 2.4 cutoffs wide: on 3 ranks each slab is thinner than the cutoff and ghosts come
+    from every rank, some of them twice (two periodic images)."""
+    rng = np.random.default_rng(11)
+    d, n = 2, 30
+    L = 2.4 * 1.2
+    pos = rng.uniform(0, L, (n, d))
+    diam = np.where(rng.uniform(size=n) < 0.5, 1.0, 0.8)
+    mine = np.arange(COMM.rank, n, COMM.size)
+    eng = SlabEngine(COMM, L, 2.0, 1.0, 1.2 - diam.max(), pos[mine], mine, diam[mine])
+    s = eng.start()
+    f_ref, e_ref = serial(pos, diam, L, 2.0)
+    np.testing.assert_array_equal(gathered(eng, eng.f), f_ref)
+    assert s.energy == pytest.approx(e_ref, rel=1e-13)
+
+
+def test_a_rebuild_that_one_ranks_particle_triggers_happens_everywhere():
+    pack = quenched(3, "mono", 400, 0.66, 0)
+    v = np.zeros_like(pack.pos)
+    v[0] = [1.0, 0.3, -0.2]  # one fast particle (on whichever rank owns it)
+    eng = engine(pack, v=v)
+    s = eng.start()
+    x0 = gathered(eng, eng.xu.copy())
+    rebuilds = eng.n_rebuilds
+    s = eng.step(0.05, False, 1.0, 0.0, s)  # v += dt F; x += dt v: particle 0 moves ~0.05
+    assert eng.n_rebuilds == rebuilds  # not yet half the skin (0.1)
+    for _ in range(3):
+        s = eng.step(0.05, False, 1.0, 0.0, s)
+    assert COMM.allgather(eng.n_rebuilds) == [rebuilds + 1] * COMM.size
+    x = gathered(eng, eng.xu)
+    assert np.abs(x - x0).max() > 0.1
+    check(eng, x, pack.diam, pack.L, pack.alpha, s)
+
+
+@pytest.mark.parametrize("d, poly", [(2, "bi"), (3, "mono")])
+def test_fire_on_all_ranks_follows_fire_on_one(world, d, poly):
+    """FIRE on the decomposition over all ranks against FIRE on one rank: the same trajectory
+    to round-off (forces bitwise; the sums over particles differ in round-off)."""
+    pack = random_packing(d, 500, 0.86 if d == 2 else 0.66, 2.0, poly, 1.4,
+                          np.random.default_rng(5))
+    out = []
+    for comm in (_petsc_self(), world):
+        ff = ForceField(comm, pack.diam, pack.L, d, 2.0)
+        ff.set_positions(pack.pos)
+        res = fire(ff, 0.0, params=FireParams(max_steps=250))
+        out.append((res, np.array(gather(ff)), ff.n_rebuilds))
+        ff.destroy()
+    (r1, x1, n1), (rp, xp, nrp) = out
+    assert r1.fire_steps == rp.fire_steps == 250 and n1 > 2
+    d_ = x1 - xp
+    assert np.abs(d_ - pack.L * np.rint(d_ / pack.L)).max() < 1e-9
+    assert rp.energy == pytest.approx(r1.energy, rel=1e-9)
+
+
+@pytest.mark.serial
+def test_the_same_on_three_ranks():
+    """Partition cases two ranks cannot make: a middle rank, slabs thinner than the cutoff."""
+    res = run_on_ranks("test_engine_domain.py", 3, "-k", "not three")
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+
+
+def test_the_numpy_slab_search_lists_the_compiled_ones_pairs(monkeypatch):
+    """kernels.slab_pairs: the k-d tree fallback (PARJAM_KERNELS=numpy) lists the same pairs in
+    the same order as the compiled cell search, in a thin box (every cell once) and a wide one
+    (on one rank the compiled list there is the fully periodic cell search's,
+    kernels.cell_pair_lists: the same pairs in the same order as the slab search's)."""
+    for n, L in ((30, 2.4 * 1.2), (400, None)):
+        if L is None:
+            pack = quenched(3, "bi", n, 0.6, 0)
+            pos, diam, L = pack.pos, pack.diam, pack.L
+        else:
+            rng = np.random.default_rng(4)
+            pos, diam = rng.uniform(0, L, (n, 3)), np.full(n, 1.0)
+        mine = np.arange(COMM.rank, n, COMM.size)
+        lists = []
+        for kind in ("", "numpy"):
+            monkeypatch.setenv("PARJAM_KERNELS", kind)
+            kernels.reset()
+            eng = SlabEngine(COMM, L, 2.0, 1.0, 0.2, pos[mine], mine, diam[mine])
+            lists.append((eng.pi, eng.pj, eng.ids))
+        monkeypatch.delenv("PARJAM_KERNELS")
+        kernels.reset()
+        for a, b in zip(*lists):
+            np.testing.assert_array_equal(a, b)
+        assert len(lists[0][0]) > 0

@@ -1,0 +1,46 @@
+"""PETSc log events around the packing engine's hot spots (parjam.logevents): -log_view shows
+them, with the counts the code paths imply."""
+
+import numpy as np
+
+from parjam import env, logevents
+from parjam.pack.fire import SNAPSHOT_EVERY, FireParams, fire
+from parjam.pack.forces import ForceField
+from parjam.pack.minimize import newton
+from parjam.pack.packing import random_packing
+
+
+def _counts():
+    return {n: logevents.event(n).getPerfInfo()["count"] for n in logevents.NAMES}
+
+
+def test_events_count_kernel_calls_rebuilds_halo_and_newton(world):
+    PETSc = env.petsc()
+    PETSc.Log.begin()  # what -log_view switches on
+    pack = random_packing(3, 200, 0.70, 2.0, "bi", 1.4, np.random.default_rng(5))
+    ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
+    ff.set_positions(pack.pos)
+    before = _counts()
+    res = fire(ff, 0.0, params=FireParams(max_steps=300))
+    mid = _counts()
+    newton(ff, 1e-12, max_steps=2)  # at least one assembly and factorisation
+    after = _counts()
+    ff.destroy()
+    fired = {n: mid[n] - before[n] for n in logevents.NAMES}
+    several = world.getSize() > 1
+    steps = res.fire_steps
+    assert steps == 300
+    # one kernel call per step on one rank (two when a rebuild interrupts it), plus the start;
+    # on several ranks the update and the forces are two calls, and every SNAPSHOT_EVERY steps
+    # the decomposition is redone (parjam.pack.engine.SlabEngine.resync) with one more force call
+    resyncs = steps // SNAPSHOT_EVERY if several else 0
+    assert (2 if several else 1) * steps + 1 + resyncs <= fired[logevents.FORCE]
+    assert fired[logevents.FORCE] <= (2 if several else 1) * steps + 1 + fired[logevents.REBUILD]
+    assert 0 < fired[logevents.REBUILD] < steps
+    assert fired[logevents.MIGRATE] == fired[logevents.REBUILD]
+    # one reduction and one ghost refresh per step, the start and each resync
+    assert fired[logevents.ALLREDUCE] == (steps + 1 + resyncs if several else 0)
+    assert fired[logevents.HALO] == (steps + 1 + resyncs if several else 0)
+    assert fired[logevents.ASSEMBLY] == fired[logevents.FACTOR] == 0
+    assert after[logevents.ASSEMBLY] > mid[logevents.ASSEMBLY]
+    assert after[logevents.FACTOR] > mid[logevents.FACTOR]
