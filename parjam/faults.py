@@ -4,7 +4,7 @@
 
 - POINT: ``command`` (in ``parjam.cli.main``, just before any command runs), ``pack.member``
   (in ``parjam pack``, after a member's files and manifest record are written) or
-  ``pack.checkpoint`` (after a member's checkpoint is written, parjam.pack.checkpoint);
+  ``pack.checkpoint`` (after a member's checkpoint is written, parjam.files.checkpoint);
 - KIND: ``error`` (default: a non-collective ParjamError, the path of a problem only one rank
   sees), ``crash`` (a RuntimeError, the path of a bug) or ``kill`` (the process SIGKILLs itself,
   as the out-of-memory killer would) or ``collective`` (a ParjamError marked collective although

@@ -18,10 +18,11 @@ def run(args):
     from mpi4py import MPI
 
     from parjam.files import rowio
+    from parjam.net import active
 
     rank = MPI.COMM_WORLD.Get_rank()
     for path in args.files:  # each rank reads its rows; the network is distributed (parjam.net.active)
-        net = rowio.network(MPI.COMM_WORLD, path)
+        net = active.from_rows(MPI.COMM_WORLD, rowio.read_rows(MPI.COMM_WORLD, path))
         if rank != 0:
             continue
         s = defined(net.summary())

@@ -198,6 +198,7 @@ def kpm_ensemble(comm, paths, args, plateau, progress):
     """KPM D(omega) of each packing on common bins (up to the lowest upper bound of the files),
     D0 and omega* each; mean and standard error over files (over probes for one file)."""
     from parjam.files import rowio
+    from parjam.net import active
     from parjam.vib import kpm, observables, spectrum
 
     bounds = parse_pair(args.kpm_bounds, "--kpm-bounds") if args.kpm_bounds else None
@@ -205,7 +206,7 @@ def kpm_ensemble(comm, paths, args, plateau, progress):
     check_same_system([(p, k.d, k.n, "") for p, k in zip(paths, rows)])
     results = []
     for path, part in zip(paths, rows):  # this rank's rows only (parjam.net.active)
-        system = spectrum.distributed_system(rowio.network(comm, part))
+        system = spectrum.distributed_system(active.from_rows(comm, part))
         progress(f"{path}: N' = {system.n}, {system.n_contacts} contacts")
         results.append(kpm.compute(comm, system, args.matrix, args.moments, args.probes,
                                    args.seed, args.probe_kind, bounds, progress))

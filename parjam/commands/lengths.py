@@ -109,6 +109,7 @@ def validate(args):
 def run(args):
     from parjam import env, lengths
     from parjam.files import h5md, outputs, rowio
+    from parjam.files import lengths as lengths_file
     from parjam.progress import Progress
 
     PETSc = env.petsc()
@@ -127,7 +128,7 @@ def run(args):
         prov = h5md.provenance(comm.getSize(), {
             "command": "lengths", "input": os.path.abspath(args.packing),
             "input_sha256": h5md.sha256(args.packing), "what": what})
-        outputs.on_root(comm, lambda: lengths.write(args.out, res, prov))
+        outputs.on_root(comm, lambda: lengths_file.write(args.out, res, prov))
     if comm.getRank() == 0:
         print_summary(res, args.out)
     return 0

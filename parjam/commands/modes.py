@@ -7,7 +7,8 @@ import numpy as np
 
 from parjam import env
 from parjam.files import h5md, modes_io, outputs, rowio
-from parjam.vib import spectrum
+from parjam.net import active
+from parjam.vib import observables, spectrum
 from parjam.commands import parse_pair
 from parjam.errors import ParjamError
 from parjam.plot import spectra as plot_spectra
@@ -98,7 +99,7 @@ def run(args):
     progress = Progress(comm.tompi4py(), args.quiet, "modes: ")
     # this rank's rows of the file only (parjam.files.rowio), kept for the output's /particles/all
     rows = rowio.read_rows(comm, args.packing)
-    system = spectrum.distributed_system(rowio.network(comm, rows))
+    system = spectrum.distributed_system(active.from_rows(comm, rows))
     progress(f"N' = {system.n} non-rattlers ({system.n_rattlers} rattlers), "
              f"{system.n_contacts} contacts, d = {system.d}")
     prov = h5md.provenance(comm.getSize(), {"command": "modes"})
@@ -130,7 +131,7 @@ def run(args):
 def dos_or_none(spec, system, args):
     if not np.any(spec.physical):  # zero modes (floppy) are no vibrations: not in D(omega)
         return None
-    dos = modes_io.dos_record(spec.frequency[spec.physical], system.n_modes, args.bins,
+    dos = observables.dos_record(spec.frequency[spec.physical], system.n_modes, args.bins,
                               args.log_bins, args.omega_min, args.plateau_pair)
     return flag_undefined(dos, spec.matrix)
 

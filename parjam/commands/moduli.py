@@ -28,6 +28,8 @@ def add_parser(sub):
 def run(args):
     from parjam import env
     from parjam.files import h5md, outputs, rowio
+    from parjam.files import moduli as moduli_file
+    from parjam.net import active
     from parjam.vib import moduli
     from parjam.progress import Progress
 
@@ -35,13 +37,13 @@ def run(args):
     comm = PETSc.COMM_WORLD
     outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
     progress = Progress(comm, args.quiet, "moduli: ")
-    net = rowio.network(comm, args.packing)  # this rank's rows only (parjam.net.active)
+    net = active.from_rows(comm, rowio.read_rows(comm, args.packing))  # this rank's rows only
     mod = moduli.compute(comm=comm, progress=progress, net=net)
     if args.out:
         prov = h5md.provenance(comm.getSize(), {
             "command": "moduli", "input": os.path.abspath(args.packing),
             "input_sha256": h5md.sha256(args.packing)})
-        outputs.on_root(comm, lambda: moduli.write(args.out, mod, prov))
+        outputs.on_root(comm, lambda: moduli_file.write(args.out, mod, prov))
     if comm.getRank() == 0:
         print_summary(mod, args.out)
     return 0

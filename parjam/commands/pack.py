@@ -149,13 +149,15 @@ def start_from_file(args):
     on every rank of the world (parjam.pack.filestart.describe: no rank reads all N particles); each
     member's group reads its own rows again when it starts (filestart.start_rows)."""
     from parjam import env
-    from parjam.pack.filestart import describe
+    from parjam.files import rowio
     from parjam.files.h5md import sha256
+    from parjam.pack.filestart import describe
 
     if args.members != 1:
         raise ParjamError(f"--from starts one configuration: --members must be 1, got "
                           f"{args.members}")
-    about = describe(env.petsc().COMM_WORLD, args.start)
+    world = env.petsc().COMM_WORLD
+    about = describe(world, rowio.read_rows(world, args.start))
     args.dim, args.n, args.phi_start = about.d, about.n, about.phi
     args.dispersity, args.ratio = about.dispersity, about.ratio
     args.start_sha256 = sha256(args.start)
@@ -225,7 +227,7 @@ def _run(args):
     validate(args)
     from parjam import env
     from parjam.files import manifest, outputs
-    from parjam.pack.ensemble import MemberIncomplete, pack_member, print_table, rows_from_files
+    from parjam.study.members import MemberIncomplete, pack_member, print_table, rows_from_files
     from parjam.progress import Progress, Relay
 
     PETSc = env.petsc()
@@ -272,7 +274,7 @@ def _run(args):
     all_rows = mpi.gather(rows, root=0)
     incomplete = mpi.gather(incomplete, root=0)
     if world.getRank() == 0:
-        from parjam.pack import checkpoint
+        from parjam.files import checkpoint
 
         checkpoint.remove_empty_directory(args.out)
         finished, _ = manifest.finished_members(args.out, params)

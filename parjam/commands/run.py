@@ -41,6 +41,17 @@ def add_parser(sub):
     p.set_defaults(run=run)
 
 
+def draw(pictures):
+    """The scene's D(omega) figures (rank 0), from its summary files."""
+    if not pictures:
+        return
+    from parjam.plot.spectra import dos_pictures
+
+    os.makedirs(os.path.dirname(pictures[0][1]), exist_ok=True)
+    for path, stem, dpi in pictures:
+        dos_pictures(path, stem, dpi)
+
+
 def run(args):
     scene = scene_mod.load(args.scene)
     stages = plan.plan(scene)
@@ -60,6 +71,8 @@ def run(args):
     runner = Runner(scene, stages, out, world, progress)
     code = runner.run()
     relay.close()
+    if code == 0 and world.getRank() == 0:
+        draw(runner.pictures())
     if world.getRank() == 0 and code == 0:
         print(runner.report(), flush=True)
     return code

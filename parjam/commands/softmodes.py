@@ -92,6 +92,7 @@ def run(args):
     validate(args)
     from parjam import env, softmodes as sm
     from parjam.files import h5md, outputs, rowio
+    from parjam.net import active
     from parjam.progress import Progress
 
     PETSc = env.petsc()
@@ -100,7 +101,7 @@ def run(args):
     outputs.check(comm, files=[("--out", args.out)], inputs=[args.packing])
     rows = rowio.read_rows(comm, args.packing)  # this rank's rows only, validated
     planes = planes_from(args, rows.d)
-    net = rowio.network(comm, rows)  # the distributed active network (parjam.net.active)
+    net = active.from_rows(comm, rows)  # the distributed active network
     cs = sm.prepare(None, planes, args.allow_hyperstatic, net=net)
     progress(f"N' = {cs.n} non-rattlers, Nc = {cs.n_contacts} ({cs.excess:+d} from "
              f"isostatic), q = {cs.q} cut contacts on {len(cs.planes)} plane(s)")
@@ -122,13 +123,15 @@ def run(args):
 
 
 def write(comm, path, res, vectors, prov):
-    """sm.write sends each rank's rows to rank 0 in turn, which writes; a failed write there is
-    then told to every rank (one line everywhere, no abort)."""
+    """The file (parjam.files.softmodes) gets each rank's rows on rank 0 in turn, which writes; a
+    failed write there is then told to every rank (one line everywhere, no abort)."""
     from parjam import softmodes as sm
+    from parjam.files import softmodes as soft_file
 
+    cut, localised = sm.cut_pairs(res.cs), sm.localised_ids(res.cs)  # collective
     message = None
     try:
-        sm.write(comm, path, res, vectors, prov)
+        soft_file.write(comm, path, res, cut, localised, vectors, prov)
     except ParjamError as exc:
         message = str(exc)
     message = comm.tompi4py().bcast(message, root=0)

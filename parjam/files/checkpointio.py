@@ -1,4 +1,4 @@
-"""The files of a member's checkpoint (parjam.pack.checkpoint), append-only and by row blocks: no rank
+"""The files of a member's checkpoint (parjam.files.checkpoint), append-only and by row blocks: no rank
 holds all N positions to write or to read them (issue 18).
 
 Layout (FORMAT 2), for member M of run directory DIR:

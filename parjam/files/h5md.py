@@ -12,14 +12,10 @@ import sys
 
 import h5py
 import numpy as np
-from scipy.spatial import cKDTree
-
 from parjam import __version__, env
-from parjam.files import outputs
-from parjam.net import potential
 from parjam.errors import ParjamError
-from parjam.net.network import contact_forces
-from parjam.net.system import Packing, wrap
+from parjam.files import outputs
+from parjam.net.system import Packing, coinciding_pairs, wrap
 
 
 def atomic_h5(path):
@@ -198,11 +194,9 @@ def _write_contacts(f, pack, net):
     c = net.all_contacts
     g = f.create_group("connectivity")
     g.create_dataset("contacts", data=np.stack([c.i, c.j], axis=1).reshape(-1, 2))
-    g.create_dataset("overlap", data=potential.overlap(c.r, c.sigma))
-    fmag = np.linalg.norm(contact_forces(pack, c), axis=1) if len(c) else np.zeros(0)
-    g.create_dataset("force", data=fmag).attrs["unit"] = fixed_string(FORCE)
-    g.create_dataset("stiffness", data=potential.d2V(c.r, c.sigma, pack.alpha, pack.eps)
-                     ).attrs["unit"] = fixed_string("epsilon sigma-2")
+    g.create_dataset("overlap", data=net.overlap)
+    g.create_dataset("force", data=net.force).attrs["unit"] = fixed_string(FORCE)
+    g.create_dataset("stiffness", data=net.stiffness).attrs["unit"] = fixed_string("epsilon sigma-2")
     link_contacts(f)  # H5MD connectivity module: an object reference to the particles group
 
 
@@ -355,15 +349,11 @@ def model_parameters(path, params):
     return alpha, eps, meta
 
 
-DUPLICATE_TOL = 1e-9  # centres closer than this times the smallest diameter coincide
-
-
 def _check_distinct(path, pos, diam, L):
     """Duplicated particles (coinciding centres) would divide by r = 0 in every force."""
-    pairs = cKDTree(pos, boxsize=L).query_pairs(DUPLICATE_TOL * diam.min(),
-                                                output_type="ndarray")
+    pairs = coinciding_pairs(pos, diam, L)
     if len(pairs):
-        i, j = sorted(pairs[0])
+        i, j = pairs[0]
         raise ParjamError(f"{path}: particles {i} and {j} coincide ({len(pairs)} duplicated "
                           f"pair(s))")
 

@@ -22,7 +22,7 @@ import re
 import h5py
 
 from parjam.files import outputs
-from parjam.pack.checkpoint import DIRECTORY
+from parjam.files.checkpoint import DIRECTORY
 from parjam.errors import ParjamError
 from parjam.files.h5md import sha256
 

@@ -26,8 +26,7 @@ import numpy as np
 from mpi4py import MPI
 
 from parjam.files import h5md, rowio
-from parjam.net import active
-from parjam.vib import observables
+from parjam.net.active import home_rows, row_block
 from parjam.net.domain import as_mpi
 from parjam.errors import ParjamError
 
@@ -64,16 +63,16 @@ def write_spectrum(comm, path, spec, system, rows, dos, prov):
     (K, N', d) array on rank 0 (in particle-id order) is written in pieces from there."""
     mpi = as_mpi(comm)
     own = system.ids if system.distributed else \
-        system.active[slice(*active.row_block(len(system.active), mpi))]
+        system.active[slice(*row_block(len(system.active), mpi))]
     spread = mpi.allreduce(spec.vector_ids is not None, op=MPI.LAND)
     k = len(spec.eigenvalue)
     if spread:  # each rank's rows (K, n_r, d) travel with their ids, K d numbers a row
-        ids, vec = rowio.home_rows(mpi, rows.n, spec.vector_ids,
+        ids, vec = home_rows(mpi, rows.n, spec.vector_ids,
                                    spec.vectors.transpose(1, 0, 2).reshape(
                                        len(spec.vector_ids), k * system.d))
         vectors = vec.reshape(len(ids), k, system.d).transpose(1, 0, 2)
     else:
-        ids, _ = rowio.home_rows(mpi, rows.n, own)
+        ids, _ = home_rows(mpi, rows.n, own)
     want = spread or mpi.bcast(spec.vectors is not None, root=0)
     if want and not spread:
         vectors = (spec.vectors if mpi.Get_rank() == 0 else
@@ -123,35 +122,6 @@ def write_dos(f, dos):
     for key, val in dos.items():
         if key not in ("omega", "edges", "density", "density_error"):
             g.attrs[key] = val
-
-
-MAX_AUTO_BINS = 40
-
-
-def auto_bins(n_frequencies):
-    """Bins for ``n`` computed frequencies when none are asked for: about sqrt(n), between 3 and
-    40, so that a few lowest modes (``--k 20``) give a histogram rather than a comb of bins
-    holding 0 or 1 mode."""
-    return int(min(MAX_AUTO_BINS, max(3, round(np.sqrt(n_frequencies)))))
-
-
-def dos_record(omega, n_modes, bins=None, log=False, omega_min=None, plateau=None):
-    """D(omega) of one spectrum on bins up to its highest computed frequency (``bins`` None:
-    :func:`auto_bins`), with D0 and omega* (definitions in parjam.vib.observables)."""
-    pos = np.asarray(omega)[np.asarray(omega) > 0]
-    if len(pos) == 0:
-        raise ParjamError("no positive frequency: cannot build D(omega)")
-    bins = auto_bins(len(pos)) if bins is None else bins
-    edges = observables.dos_edges(float(pos.max()), bins, log, omega_min)
-    centres, density = observables.density_of_states(pos, n_modes, edges)
-    d0, wstar, window = observables.dos_summary(pos, n_modes, plateau)
-    return {"omega": centres, "edges": edges, "density": density,
-            "binning": "log" if log else "linear",
-            "normalisation": "per mode: counts / ((d N' - d) * bin width)",
-            "n_modes_total": int(n_modes), "D0": d0, "omega_star": wstar,
-            "plateau_window": np.array(window, dtype=float),
-            "definition": "D0 = mean density over the plateau window; omega* = omega_half / 2, "
-                          "omega_half the first frequency where N(omega)/(n omega) >= D0/2"}
 
 
 def read_spectrum(path):

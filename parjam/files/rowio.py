@@ -9,8 +9,8 @@ is read by every rank.  Files are the ones of docs/file-format.md, unchanged.
 Validation gives the one-line errors of parjam.files.h5md.read_packing before any work: the layout and
 parameters are checked identically on every rank, the values of each rank's rows locally and
 the first problem (in rank order) raised on every rank.  Coinciding centres, which
-read_packing finds with a k-d tree of all N, are found by the distributed contact search
-(``network``: a contact with r below DUPLICATE_TOL x the smallest diameter).
+read_packing finds with a k-d tree of all N, are found where the rows become a network
+(parjam.net.active.from_rows: a contact with r below DUPLICATE_TOL x the smallest diameter).
 
 Writing by row blocks (:func:`rows_file`, :class:`RowFile`): a dataset whose rows are spread
 over the ranks is written without any rank holding all of them.  With this serial h5py, rank 0
@@ -18,8 +18,8 @@ creates the file and each dataset with its full shape and attributes, then recei
 rank's block in turn, in global row order (rank r's rows follow rank r-1's), in pieces of at
 most ``CHUNK_BYTES``, and writes each as a hyperslab: rank 0 holds its own block and one piece.
 Rows keyed by particle ids in another order (the active network's rows on P > 1) first go to
-the rank whose contiguous id block holds them (:func:`home_rows`), so the file's rows stay in
-particle-id order.  Where h5py is built with MPI (``h5py.get_config().mpi``), every rank opens
+the rank whose contiguous id block holds them (parjam.net.active.home_rows, called by the
+writer's caller), so the file's rows stay in particle-id order.  Where h5py is built with MPI (``h5py.get_config().mpi``), every rank opens
 the file with the ``mpio`` driver instead and writes its own hyperslab collectively (that path
 cannot run on this machine's serial h5py: it is kept small and untested here).
 
@@ -46,7 +46,7 @@ import numpy as np
 
 from parjam import env
 from parjam.files import h5md, outputs
-from parjam.net import active
+from parjam.net.active import row_block
 from parjam.net.domain import as_mpi
 from parjam.errors import ParjamError
 from parjam.net.system import wrap
@@ -55,13 +55,13 @@ POSITIONS, DIAMETERS = "particles/all/position/value", "particles/all/diameter"
 SPECIES = "particles/all/species"
 
 
-READ, NETWORK, WRITE = "parjam: read rows", "parjam: active network", "parjam: write rows"
+READ, WRITE = "parjam: read rows", "parjam: write rows"
 _events = {}
 
 
 def event(name):
-    """The PETSc log event ``name`` (READ, NETWORK or WRITE), registered once: ``-log_view``
-    shows the reading, the network and the writing of every command built on this module."""
+    """The PETSc log event ``name`` (READ or WRITE), registered once: ``-log_view`` shows the
+    reading and the writing of every command built on this module."""
     if name not in _events:
         _events[name] = env.petsc().Log.Event(name)
     return _events[name]
@@ -138,7 +138,7 @@ def read_block(comm, path):
         L = h5md.check_layout(path, frame, diam.shape, edges)
         alpha, eps, meta = h5md.model_parameters(path, params)
         n, d = frame
-        start, stop = active.row_block(n, comm)
+        start, stop = row_block(n, comm)
         x = pos[-1, start:stop] if pos.ndim == 3 else pos[start:stop]
         rows = Rows(path, n, d, start, stop, np.asarray(x, dtype=float),
                     np.asarray(diam[start:stop], dtype=float), L, alpha, eps, meta)
@@ -152,46 +152,10 @@ def read_block(comm, path):
         return rows
 
 
-def network(comm, source):
-    """The distributed active network of a packing file (a path, or its ``read_rows``), read by
-    row ranges (collective)."""
-    rows = source if isinstance(source, Rows) else read_rows(comm, source)
-    try:
-        with event(NETWORK):
-            return active.build(comm, rows.pos, rows.diam, rows.ids, rows.L, rows.alpha,
-                                rows.eps, coincide=h5md.DUPLICATE_TOL)
-    except ValueError as exc:  # raised on every rank alike (active.check_distinct)
-        raise ParjamError(f"{rows.path}: {exc}") from None
-
-
 # --- writing by row blocks ---------------------------------------------------------------------
 CHUNK_BYTES = 16 << 20  # the largest piece of a block sent to rank 0 at once
 HEADROOM_BYTES = 1 << 20  # reserved beyond the data for HDF5's headers, attributes, small sets
 PARALLEL_H5 = bool(h5py.get_config().mpi)  # h5py built with MPI: the mpio driver
-
-
-def home_rows(comm, n, ids, values=None):
-    """Rows keyed by particle ids (any order, any rank) moved to the rank whose contiguous id
-    block (``active.row_block(n)``) holds them, sorted by id there (collective, all-to-all of
-    these rows only).  Returns (ids, values) of this rank's home rows; ``values`` (rows along
-    axis 0) may be None.  Concatenated over the ranks in rank order they are in id order."""
-    comm = as_mpi(comm)
-    ids = np.asarray(ids, dtype=np.int64)
-    size = comm.Get_size()
-    base, extra = divmod(n, size)  # active.row_block's split: the first `extra` blocks are longer
-    starts = np.array([r * base + min(r, extra) for r in range(size + 1)], dtype=np.int64)
-    home = np.searchsorted(starts, ids, side="right") - 1
-    order = np.argsort(home, kind="stable")
-    bounds = np.searchsorted(home[order], np.arange(size + 1))
-    send_ids = [ids[order[bounds[r]:bounds[r + 1]]] for r in range(size)]
-    got_ids = np.concatenate(comm.alltoall(send_ids)) if size > 1 else send_ids[0]
-    got = None
-    if values is not None:
-        values = np.asarray(values)
-        send = [values[order[bounds[r]:bounds[r + 1]]] for r in range(size)]
-        got = np.concatenate(comm.alltoall(send)) if size > 1 else send[0]
-    sort = np.argsort(got_ids, kind="stable")
-    return got_ids[sort], (None if got is None else got[sort])
 
 
 class ReservedFile(pyio.RawIOBase):
@@ -478,25 +442,12 @@ def write_particle_rows(out, rows, group="all"):
     out.rows(f"particles/{group}/species", species)
 
 
-@dataclass
-class PackingRows:
-    """One rank's consecutive rows of a packing file (rank r's follow rank r-1's): particles
-    in id order and contacts in the file's order (each contact once over all ranks)."""
-
-    pos: np.ndarray  # (n_r, d), folded into [0, L)
-    diam: np.ndarray  # (n_r,)
-    species: np.ndarray  # (n_r,) int32
-    rattler: np.ndarray  # (n_r,) bool
-    contacts: np.ndarray  # (m_r, 2) particle ids i < j
-    overlap: np.ndarray  # (m_r,) 1 - r / sigma_ij
-    force: np.ndarray  # (m_r,) |V'(r)|
-    stiffness: np.ndarray  # (m_r,) V''(r)
-
-
 def write_packing_rows(comm, path, part, d, L, alpha, eps, phi, observables, parameters,
                        prov=None):
-    """A packing file (h5md.write_packing's layout and content) from every rank's
-    :class:`PackingRows` ``part`` (collective; no rank holds all N or all Nc rows).
+    """A packing file (h5md.write_packing's layout and content) from every rank's rows ``part``
+    (collective; no rank holds all N or all Nc rows): its particles in id order (``pos``,
+    ``diam``, ``species``, ``rattler``) and its contacts in the file's order (``contacts``,
+    ``overlap``, ``force``, ``stiffness``), parjam.pack.staterows.PackingRows.
     ``observables``: the global /observables values (the network's summary, ``stress_tensor``
     and extras); ``parameters``: the /parameters attributes beyond alpha, epsilon and phi."""
     comm = as_mpi(comm)

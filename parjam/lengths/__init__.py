@@ -10,17 +10,16 @@ One module per concept, all on the distributed active network (parjam.net.active
   soft modes;
 - :mod:`.whole` -- one large cube counted by all the ranks together, its members where they are;
 - :mod:`.lstar` -- the cubes distributed over the ranks, the table and the fitted l*;
-- :mod:`.analysis` -- the whole ``parjam lengths`` analysis; :mod:`.output` -- the HDF5 group.
+- :mod:`.analysis` -- the whole ``parjam lengths`` analysis (its file: parjam.files.lengths).
 """
 
 from parjam.lengths.analysis import WHAT, Lengths, compute, default_k_max, fit_structure
 from parjam.lengths.cubes import CubeCount, count_cube
 from parjam.lengths.lstar import LstarResult, default_e0, lstar, lstar_estimate
-from parjam.lengths.output import write
 from parjam.lengths.speeds import (acoustic_lengths, christoffel_speeds, longitudinal_modulus,
                                    mass_density, omega_star, sound_speeds, wave_tensor)
 
 __all__ = ["WHAT", "CubeCount", "Lengths", "LstarResult", "acoustic_lengths",
            "christoffel_speeds", "compute", "count_cube", "default_e0", "default_k_max",
            "fit_structure", "longitudinal_modulus", "lstar", "lstar_estimate", "mass_density",
-           "omega_star", "sound_speeds", "wave_tensor", "write"]
+           "omega_star", "sound_speeds", "wave_tensor"]

@@ -27,6 +27,7 @@ import scipy.linalg
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from parjam.net.blocks import contact_blocks
 from parjam import softmodes
 from parjam.vib import hessian
 
@@ -169,7 +170,7 @@ def count_cube(pos, internal, n_leaving, L, x0, ell, *, alpha, eps, scale, comm_
     if n_core == 0:
         return CubeCount(ell, n, q, len(kept), 0, 0, trivial, 0, 0, d)
     pieces, labels = components(n_core, ci, cj, labels=True)
-    blocks = hessian.contact_blocks(kept.rij[ck], kept.r[ck], kept.sigma[ck], alpha, eps,
+    blocks = contact_blocks(kept.rij[ck], kept.r[ck], kept.sigma[ck], alpha, eps,
                                     "relaxed")
     M = hessian.assemble(comm_self, n_core, d, ci, cj, blocks, fmt="sbaij")
     try:

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from parjam.files import rowio
 from parjam.net import active
+from parjam.net.system import Packing
 from parjam.net.domain import as_mpi
 
 
@@ -32,8 +32,9 @@ def mean_diameter(comm, diam_rows, n):
 
 
 def from_rows(comm, rows):
-    """Sites of a packing file's rows (parjam.files.rowio.read_rows): no rank reads all N rows."""
-    net = rowio.network(comm, rows)
+    """Sites of a packing's rows (a file's row block, parjam.files.rowio.read_rows: no rank reads
+    all N rows)."""
+    net = active.from_rows(comm, rows)
     return Sites(net, net.active_pos, mean_diameter(comm, rows.diam, rows.n))
 
 
@@ -47,10 +48,10 @@ def from_packing(comm, pack):
 
 
 def build(comm, source):
-    """Sites of a rowio.Rows, of a Packing every rank holds, or ``source`` itself if it
-    already is one (collective)."""
+    """Sites of a packing's rows (``from_rows``), of a Packing every rank holds, or ``source``
+    itself if it already is one (collective)."""
     if isinstance(source, Sites):
         return source
-    if isinstance(source, rowio.Rows):
-        return from_rows(comm, source)
-    return from_packing(comm, source)
+    if isinstance(source, Packing):
+        return from_packing(comm, source)
+    return from_rows(comm, source)

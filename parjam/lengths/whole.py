@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from parjam.net.blocks import contact_blocks
 from parjam import env
 from parjam.net import active
 from parjam.vib import hessian
@@ -140,7 +141,7 @@ def survivor_matrix(comm, plan, core, alive, net, n_core):
     """The relaxed-spring matrix of the survivors (SBAIJ, block rows of the parallel re-index),
     from the core half-edges; its temporaries freed before the factorisation."""
     number, lo, hi = active.renumber(as_mpi(comm), plan.halo, alive)
-    blocks = hessian.contact_blocks(core.rij, core.r, core.sigma, net.alpha, net.eps,
+    blocks = contact_blocks(core.rij, core.r, core.sigma, net.alpha, net.eps,
                                     "relaxed")
     return hessian.assemble(comm, n_core, net.d, number[core.i], number[core.j], blocks,
                             rows=(lo, hi), fmt="sbaij")
@@ -167,7 +168,7 @@ def extended_on_root(comm, g, core, alive, x0, ell, net, e0):
         li, lj, rij, r, sigma = li[o], lj[o], rij[o], r[o], sigma[o]
         n_core, d = pos.shape
         _, labels = components(n_core, li, lj, labels=True)
-        blocks = hessian.contact_blocks(rij, r, sigma, net.alpha, net.eps, "relaxed")
+        blocks = contact_blocks(rij, r, sigma, net.alpha, net.eps, "relaxed")
         H = hessian.dense_hessian(n_core, d, li, lj, blocks)
         result = extended_soft_count(H, np.mod(pos - x0, net.L[0]), ell, labels, e0)
     return comm.bcast(result, root=0)

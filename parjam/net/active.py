@@ -35,11 +35,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from parjam import env
+from parjam.errors import ParjamError
 from parjam.net import potential
-from parjam.vib import hessian
+from parjam.net.blocks import contact_blocks
 from parjam.net.domain import Halo, SlabDomain, as_mpi, send_rows
 from parjam.net.network import Contacts, NetworkNumbers
-from parjam.net.system import pair_separation, sphere_volume
+from parjam.net.system import DUPLICATE_TOL, pair_separation, sphere_volume
 
 
 @dataclass
@@ -102,7 +104,7 @@ class ActiveNetwork(NetworkNumbers):
     def blocks(self, kind="full"):
         """Per-half-edge blocks K_ij of Eq. (1) (parjam.vib.hessian)."""
         c = self.contacts
-        return hessian.contact_blocks(c.rij, c.r, c.sigma, self.alpha, self.eps, kind)
+        return contact_blocks(c.rij, c.r, c.sigma, self.alpha, self.eps, kind)
 
 
 def half_edges(dom, x, diam, ids, cutoff):
@@ -316,3 +318,52 @@ def from_packing(comm, pack):
     start, stop = row_block(pack.n, comm)
     return build(comm, pack.pos[start:stop], pack.diam[start:stop],
                  np.arange(start, stop, dtype=np.int64), pack.L, pack.alpha, pack.eps)
+
+
+def from_rows(comm, rows):
+    """The distributed active network of a packing's rows (collective): ``rows`` holds this
+    rank's ``pos``, ``diam`` and ``ids`` with the packing's ``L``, ``alpha``, ``eps`` (a packing
+    file's row block, parjam.files.rowio.read_rows).  Coinciding centres (system.DUPLICATE_TOL)
+    are one ParjamError naming ``rows.path``, raised on every rank."""
+    try:
+        with network_event():
+            return build(comm, rows.pos, rows.diam, rows.ids, rows.L, rows.alpha, rows.eps,
+                         coincide=DUPLICATE_TOL)
+    except ValueError as exc:  # raised on every rank alike (check_distinct)
+        raise ParjamError(f"{getattr(rows, 'path', 'packing')}: {exc}") from None
+
+
+NETWORK_EVENT = "parjam: active network"
+_event = []
+
+
+def network_event():
+    """The PETSc log event around building the network: ``-log_view`` shows it."""
+    if not _event:
+        _event.append(env.petsc().Log.Event(NETWORK_EVENT))
+    return _event[0]
+
+
+def home_rows(comm, n, ids, values=None):
+    """Rows keyed by particle ids (any order, any rank) moved to the rank whose contiguous id
+    block (``row_block(n)``) holds them, sorted by id there (collective, all-to-all of these
+    rows only).  Returns (ids, values) of this rank's home rows; ``values`` (rows along axis 0)
+    may be None.  Concatenated over the ranks in rank order they are in id order: the order of
+    a file's rows."""
+    comm = as_mpi(comm)
+    ids = np.asarray(ids, dtype=np.int64)
+    size = comm.Get_size()
+    base, extra = divmod(n, size)  # row_block's split: the first `extra` blocks are longer
+    starts = np.array([r * base + min(r, extra) for r in range(size + 1)], dtype=np.int64)
+    home = np.searchsorted(starts, ids, side="right") - 1
+    order = np.argsort(home, kind="stable")
+    bounds = np.searchsorted(home[order], np.arange(size + 1))
+    send_ids = [ids[order[bounds[r]:bounds[r + 1]]] for r in range(size)]
+    got_ids = np.concatenate(comm.alltoall(send_ids)) if size > 1 else send_ids[0]
+    got = None
+    if values is not None:
+        values = np.asarray(values)
+        send = [values[order[bounds[r]:bounds[r + 1]]] for r in range(size)]
+        got = np.concatenate(comm.alltoall(send)) if size > 1 else send[0]
+    sort = np.argsort(got_ids, kind="stable")
+    return got_ids[sort], (None if got is None else got[sort])

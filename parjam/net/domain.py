@@ -33,6 +33,20 @@ def as_mpi(comm):
     return comm.tompi4py() if hasattr(comm, "tompi4py") else comm
 
 
+IN_TURN_TAG = 7301  # point-to-point tag of the blocks sent to the root in turn
+
+
+def blocks_in_turn(mpi, block, root=0):
+    """On ``root``: each rank's ``block`` in rank order (its own included), received one at a
+    time as the caller iterates; elsewhere the block is sent and nothing is yielded.  The
+    caller must iterate to the end on ``root`` (also on error) so that every send completes."""
+    if mpi.Get_rank() != root:
+        mpi.send(block, dest=root, tag=IN_TURN_TAG)
+        return
+    for r in range(mpi.Get_size()):
+        yield block if r == root else mpi.recv(source=r, tag=IN_TURN_TAG)
+
+
 def box_edges(L, d):
     """Box edges as a float array of shape (d,) (a scalar L is a cube)."""
     edges = np.broadcast_to(np.asarray(L, dtype=np.float64), (d,)).copy()

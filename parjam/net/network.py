@@ -138,6 +138,11 @@ class Network(NetworkNumbers):
     stress: np.ndarray
     max_force: float
     mean_force: float
+    # per contact of all_contacts (the file's /connectivity): overlap 1 - r / sigma_ij,
+    # force |V'(r)| and stiffness V''(r)
+    overlap: np.ndarray = None
+    force: np.ndarray = None
+    stiffness: np.ndarray = None
 
     @property
     def n_active(self):
@@ -183,4 +188,7 @@ def analyze(pack):
         energy=float(potential.energy(allc.r, allc.sigma, pack.alpha, pack.eps).sum()),
         pressure=float(np.trace(stress) / pack.d), stress=stress, max_force=max_force,
         mean_force=float(fmag.mean()) if len(fmag) else 0.0,
+        overlap=potential.overlap(allc.r, allc.sigma),
+        force=np.linalg.norm(contact_forces(pack, allc), axis=1) if len(allc) else np.zeros(0),
+        stiffness=potential.d2V(allc.r, allc.sigma, pack.alpha, pack.eps),
     )

@@ -71,6 +71,17 @@ def wrap(pos, L):
     return p
 
 
+DUPLICATE_TOL = 1e-9  # centres closer than this times the smallest diameter coincide
+
+
+def coinciding_pairs(pos, diam, L):
+    """Pairs (i < j) of coinciding centres (closer than DUPLICATE_TOL x the smallest diameter):
+    a packing holding one would divide by r = 0 in every force."""
+    pairs = cKDTree(pos, boxsize=L).query_pairs(DUPLICATE_TOL * diam.min(),
+                                                output_type="ndarray")
+    return np.sort(pairs, axis=1) if len(pairs) else np.zeros((0, 2), dtype=np.int64)
+
+
 def min_image(dr, L):
     """Minimum-image separation vectors (positions in [0, L) keep ~1e-16 L absolute precision)."""
     return dr - L * np.rint(dr / L)

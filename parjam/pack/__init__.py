@@ -10,5 +10,5 @@ member.  Everything here runs on the spatial domain decomposition of :mod:`parja
   :mod:`.minimize` -- the slab engine, the compiled pair kernel, FIRE and Newton.
 - :mod:`.randomstart`, :mod:`.filestart` -- where a configuration starts.
 - :mod:`.stability`, :mod:`.jamnet` -- the stable-minimum check and the per-state network.
-- :mod:`.statefile`, :mod:`.checkpoint` -- a state as each rank's rows; checkpoints.
+- :mod:`.staterows`, :mod:`.checkpoint` -- a state as each rank's rows; checkpoints.
 """

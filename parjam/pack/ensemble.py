@@ -1,21 +1,19 @@
-"""Making the states of one ensemble member and writing them: the work behind ``parjam pack``."""
+"""The states of one ensemble member of ``parjam pack`` (its protocol: phi_c search, then the
+ladder, the target pressures or a quench) and the flags that say when a state is not what it
+seems (resolution of phi_c, the virial dphi, force balance, crystallisation, stability).
+Writing them is parjam.study.members'."""
 
-import os
 import sys
-import time
 
-import h5py
 import numpy as np
 
-from parjam import faults
-from parjam.files import h5md, manifest, outputs
-from parjam.net import order
-from parjam.pack import checkpoint, filestart, statefile
-from parjam.net.network import analyze
 from parjam.errors import UnjammedError
+from parjam.net import order
+from parjam.net.network import analyze
+from parjam.net.system import Packing
+from parjam.pack import staterows
 from parjam.pack.packing import RESOLVED_FRACTION, JamSettings, Jammer, LadderUnjammed
 from parjam.pack.randomstart import member_rng, start_rows
-from parjam.net.system import Packing
 
 
 def settings_from(args):
@@ -23,13 +21,13 @@ def settings_from(args):
     return JamSettings(ftol=args.ftol, e_low=lo, e_high=hi)
 
 
-def member_states(args, member, comm, progress, checkpoint=None):
-    """Every requested state of one member, in the order they are computed."""
-    rng = member_rng(args.seed, member)
-    start_phi = args.phi if args.phi is not None else args.phi_start
-    if getattr(args, "start", None):  # pack --from FILE: this rank's block rows of the file
-        start = filestart.start_rows(comm, args.start, args.alpha, args.phi_start)
-    else:  # this rank's block rows of the random start: no rank makes all N particles
+def member_states(args, member, comm, progress, checkpoint=None, start=None):
+    """Every requested state of one member, in the order they are computed.  ``start``: this
+    rank's block rows of the configuration to start from (parjam.pack.filestart.start_rows for
+    ``pack --from``); None for the member's random start."""
+    if start is None:  # this rank's block rows of the random start: no rank makes all N
+        rng = member_rng(args.seed, member)
+        start_phi = args.phi if args.phi is not None else args.phi_start
         start = start_rows(comm, args.dim, args.n, start_phi, args.alpha, args.dispersity,
                            args.ratio, rng)
     jammer = Jammer(comm, start, settings_from(args), progress, checkpoint)
@@ -111,7 +109,7 @@ def resolution_flags(states, resolution, label_prefix):
         ok = resolution <= RESOLVED_FRACTION * dphi
         st.info["dphi_resolved"] = int(ok)
         if not ok:
-            _warn(f"{label_prefix}{st.label}: dphi = {dphi:.1e} is below what phi_c resolves "
+            warn(f"{label_prefix}{st.label}: dphi = {dphi:.1e} is below what phi_c resolves "
                   f"(+- {resolution:.1e}; needs dphi >= {resolution / RESOLVED_FRACTION:.1e} for "
                   f"{RESOLVED_FRACTION:.0%}): its label is not reliable (dphi_resolved = 0 in "
                   f"the file)")
@@ -128,7 +126,7 @@ DPHI_VIRIAL_SQRT = 0.5
 
 
 def state_network(st):
-    """The contact network of a State: on the slabs from its rows (parjam.pack.statefile, collective),
+    """The contact network of a State: on the slabs from its rows (parjam.pack.staterows, collective),
     serially (network.analyze) for a State made from a whole Packing."""
     if isinstance(st.rows, Packing):
         return analyze(st.rows)
@@ -140,7 +138,7 @@ def state_hexatic(st, net):
     them (collective)."""
     if isinstance(st.rows, Packing):
         return order.hexatic_order(st.rows)
-    return statefile.hexatic_order(st.rows, net)
+    return staterows.hexatic_order(st.rows, net)
 
 
 def virial_dphi(st):
@@ -187,10 +185,10 @@ def quality_checks(pack, net, label, dphi=None, hexatic=None, speak=True):
     ~1e-16 and the absolute --ftol means little)."""
     extra, warning = order.check(pack, net, dphi, hexatic)  # hexatic order and contact excess
     if warning and speak:
-        _warn(f"{label}: {warning}")
+        warn(f"{label}: {warning}")
     rel = net.summary()["max_force_rel"]
     if rel > REL_FORCE_WARN and speak:
-        _warn(f"{label}: force balance only {rel:.1e} of the mean contact force "
+        warn(f"{label}: force balance only {rel:.1e} of the mean contact force "
               f"(max|F| = {net.max_force:.1e}, mean contact force {net.mean_force:.1e}): the "
               f"contact forces approach the round-off of the forces")
     return extra
@@ -211,7 +209,7 @@ def stability_observables(st, label, speak=True):
         out["dphi_virial_ok"] = np.int8(out["dphi_virial_ok"])
         if not out["dphi_virial_ok"] and speak:
             label_dphi = st.phi - st.info["phi_c"]
-            _warn(f"{label}: its own contact network puts it at dphi = "
+            warn(f"{label}: its own contact network puts it at dphi = "
                   f"{st.info['dphi_virial']:.2e} from jamming (virial relation), not "
                   f"phi - phi_c = {label_dphi:.2e} (tolerance "
                   f"{virial_tolerance(label_dphi):.1%}): it re-jammed at another phi_c on the "
@@ -219,160 +217,15 @@ def stability_observables(st, label, speak=True):
     if "stable" in out:
         out["stable"] = np.int8(out["stable"])
         if not out["stable"] and speak:
-            _warn(f"{label}: not a stable minimum after {st.info['escapes']} escape(s) and "
+            warn(f"{label}: not a stable minimum after {st.info['escapes']} escape(s) and "
                   f"{st.info.get('cycles', 0)} compression cycle(s) from its saddle "
                   f"({st.info['negative_curvatures']} negative curvature(s) of the full "
                   f"Hessian): written with stable = 0 in /observables")
     return out
 
 
-def _warn(msg):
+
+
+def warn(msg):
+    """A warning line on stderr (the caller decides which rank speaks)."""
     print(f"parjam: warning: {msg}", file=sys.stderr, flush=True)
-
-
-def file_name(out, member, state):
-    return os.path.join(out, f"member{member:04d}_{state.label}.h5")
-
-
-def member_checkpoint(args, member, comm, progress, run_params):
-    """The member's checkpoint (parjam.pack.checkpoint) in DIR/.checkpoint, or None when
-    --checkpoint-every is 0; with --no-resume an old one is discarded."""
-    every = getattr(args, "checkpoint_every", 0.0)
-    if run_params is None or every <= 0:
-        return None
-    path = checkpoint.path_for(args.out, member)
-    if not args.resume and comm.getRank() == 0 and os.path.exists(path):
-        os.remove(path)
-    ck = checkpoint.Checkpoint(path, comm, every, {"member": member, **run_params}, progress)
-    if ck.loaded:
-        progress(f"resuming from {path}: {len(ck.done)} minimisations finished"
-                 + (", one in progress" if ck.pending is not None else ""))
-    return ck
-
-
-class MemberIncomplete(UnjammedError):
-    """A member's ladder (or target pressures) unjammed at one step: the jammed states before
-    it are written; ``rows`` are their summary rows (group rank 0)."""
-
-    def __init__(self, message, rows):
-        super().__init__(message, collective=False)
-        self.rows = rows
-
-
-def pack_member(args, member, comm, progress, run_params=None):
-    """Compute, write (by row blocks) and summarise the states of one ensemble member; then its
-    manifest record (parjam.files.manifest), so that a restarted run skips it.  ``args`` is the
-    member's parjam.pack.protocol.PackingProtocol (from ``parjam pack`` or a scene).  Where a step
-    of its ladder unjams, the jammed states before it are written and MemberIncomplete (an
-    UnjammedError) is raised after them, without the manifest record."""
-    t0 = time.time()
-    ck = member_checkpoint(args, member, comm, progress, run_params)
-    states, protocol, totals, stopped = member_states(args, member, comm, progress, ck)
-    rows = []
-    paths = []
-    root = comm.getRank() == 0
-    for st in states:
-        net = state_network(st)  # on the slabs, from the state's rows (collective)
-        hexatic = state_hexatic(st, net)
-        params = {
-            "protocol": protocol, "ladder": args.ladder if "ladder" in protocol else "none",
-            "seed": args.seed, "member": member, "dimension": args.dim, "n": args.n,
-            "dispersity": args.dispersity, "ratio": args.ratio, "ftol": args.ftol,
-            "energy_window": list(args.energy_window), "state": st.label,
-            "minimiser_status": st.result.status, "group_ranks": comm.getSize(),
-            "seconds": time.time() - t0,
-            **{k: v for k, v in st.info.items()}, **totals,
-        }
-        path = file_name(args.out, member, st)
-        prov = h5md.provenance(comm.tompi4py().Get_size(), {"world_ranks": _world_size()})
-        extra = quality_checks(st.rows, net, f"member {member} {st.label}",
-                               st.phi - st.info.get("phi_c", np.nan), hexatic, speak=root)
-        extra.update(stability_observables(st, f"member {member} {st.label}", speak=root))
-        # by row blocks (parjam.files.rowio, collective): no rank holds all N; a failed write (a full
-        # disk) ends every rank of the group with the same line, not an MPI abort
-        statefile.write(path, st.rows, net, params, prov, extra)
-        if root:  # one row per state, however many ranks share the member
-            paths.append(path)
-            rows.append({"member": member, "state": st.label, "file": path, **net.summary(),
-                         "phi_c": st.info.get("phi_c", np.nan),
-                         "stable": int(st.info.get("stable", 1)),
-                         "dphi_virial_ok": int(st.info.get("dphi_virial_ok", 1))})
-    if stopped is not None:
-        # the jammed states are written, but the member is not finished: no manifest record
-        # (a rerun recomputes it, from its checkpoint if any) and an UnjammedError (exit 3)
-        raise MemberIncomplete(f"member {member}: {stopped}; its {len(states)} jammed "
-                               f"state(s) before that step are written "
-                               f"(ladder_unjammed_at = {stopped.step:.1e} in /observables)",
-                               rows)
-    if run_params is not None:
-        outputs.on_root(comm, lambda: manifest.write_member_record(args.out, member, paths,
-                                                                   run_params))
-    if ck is not None:
-        ck.remove()
-    progress(f"done in {time.time() - t0:.1f} s ({totals['fire_steps']} FIRE steps, "
-             f"{totals['newton_steps']} Newton steps)")
-    faults.point("pack.member")  # PARJAM_FAULT testing hook (parjam/faults.py)
-    return rows
-
-
-SUMMARY_KEYS = ("phi", "N_active", "excess", "z", "dz", "pressure", "max_force",
-                "max_force_rel")
-
-
-def rows_from_files(out, member, files):
-    """Summary rows of a finished member, read back from its files (resumed runs)."""
-    rows = []
-    for name in sorted(files):
-        path = os.path.join(out, name)
-        with h5py.File(path, "r") as f:
-            row = {key: h5md.observable(f, key) for key in SUMMARY_KEYS}
-            for key in ("stable", "dphi_virial_ok"):
-                row[key] = int(h5md.observable(f, key)) if key in f["observables"] else 1
-            par = f["parameters"].attrs
-            state = par["state"]
-            row.update(member=member, file=path, phi_c=float(par.get("phi_c", np.nan)),
-                       state=state.decode() if isinstance(state, bytes) else str(state))
-        rows.append(row)
-    return rows
-
-
-def _world_size():
-    from mpi4py import MPI
-
-    return MPI.COMM_WORLD.Get_size()
-
-
-def print_table(rows):
-    rows = sorted(rows, key=lambda r: (r["member"], r["phi"]))
-    head = (f"{'member':>6} {'state':>12} {'phi_c':>14} {'phi':>14} {'N_act':>6} {'Nc-iso':>6} "
-            f"{'z':>8} {'dz':>10} {'p':>11} {'max|F|':>9} {'|F|rel':>9}")
-    print(head)
-    for r in rows:
-        print(f"{r['member']:>6} {r['state']:>12} {r['phi_c']:>14.10f} {r['phi']:>14.10f} "
-              f"{r['N_active']:>6} {r['excess']:>6} {r['z']:>8.4f} {r['dz']:>10.3e} "
-              f"{r['pressure']:>11.4e} {r['max_force']:>9.2e} {r['max_force_rel']:>9.2e}")
-    print(stability_line(rows))
-    line = label_line(rows)
-    if line:
-        print(line)
-
-
-def stability_line(rows):
-    """The ensemble's count of states that are not stable minima (flagged, not dropped)."""
-    bad = [(r["member"], r["state"]) for r in rows if not r.get("stable", 1)]
-    members = sorted({m for m, _ in bad})
-    if not bad:
-        return f"stability: all {len(rows)} states are stable minima (Nc >= Nc_iso)"
-    return (f"stability: {len(bad)} of {len(rows)} states in {len(members)} member(s) are NOT "
-            f"stable minima (flagged stable = 0): " + ", ".join(f"{m} {s}" for m, s in bad))
-
-
-def label_line(rows):
-    """The ensemble's count of states whose own virial dphi is off their label (``virial_flags``),
-    or None if there is none."""
-    bad = [(r["member"], r["state"]) for r in rows if not r.get("dphi_virial_ok", 1)]
-    if not bad:
-        return None
-    return (f"labels: {len(bad)} state(s) re-jammed at another phi_c on the way (their own "
-            f"virial dphi is off their label; dphi_virial_ok = 0): "
-            + ", ".join(f"{m} {s}" for m, s in bad))

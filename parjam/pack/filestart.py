@@ -1,11 +1,10 @@
 """The start of ``parjam pack --from FILE`` by rows (issue 18): no rank reads or holds all N
 particles of the file.
 
-Every rank reads only its contiguous block of rows (parjam.files.rowio.read_rows: the split of
-PETSc's rows, the Jammer's block), validated with the one-line errors of
-parjam.files.h5md.read_packing.  The small description the command needs before any work (d, N, the
-volume fraction, the dispersity label and diameter ratio) is made once, from those rows, by
-reductions:
+Every rank holds only its contiguous block of rows of the file (read and validated by
+parjam.files.rowio.read_rows: the split of PETSc's rows, the Jammer's block).  The small
+description the command needs before any work (d, N, the volume fraction, the dispersity label
+and diameter ratio) is made once, from those rows, by reductions:
 
 - phi is system.Packing.phi's value bitwise: the sphere volumes summed as numpy sums the whole
   array (parjam.net.exactsum), divided by L^d;
@@ -14,9 +13,10 @@ reductions:
   two reductions;
 - coinciding centres, which read_packing finds with a k-d tree of all N, are looked for on the
   slabs of parjam.net.domain within DUPLICATE_TOL x the smallest diameter (a halo that thin holds
-  almost nothing); on one rank, which holds all rows anyway, by read_packing's own k-d tree.
+  almost nothing); on one rank, which holds all rows anyway, by read_packing's own search
+  (system.coinciding_pairs).
 
-The Jammer then starts from ``start_rows``: this rank's rows as statefile.StateRows, the same
+The Jammer then starts from ``start_rows``: this rank's rows as staterows.StateRows, the same
 rows, metadata and phi that ``Jammer(comm, pack)`` took from the whole file (the old path),
 so the packings made are bitwise those of the whole-file start.
 """
@@ -25,14 +25,13 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from parjam.files import h5md, rowio
+from parjam.errors import ParjamError
 from parjam.net import exactsum
 from parjam.net.active import max_op, min_op
 from parjam.net.domain import SlabDomain, as_mpi
-from parjam.pack.statefile import StateRows
-from parjam.net.system import sphere_volume
+from parjam.pack.staterows import StateRows
+from parjam.net.system import DUPLICATE_TOL, coinciding_pairs, sphere_volume
 
 
 @dataclass(frozen=True)
@@ -55,14 +54,14 @@ def dispersity_label(comm, diam):
 
 
 def duplicate_problem(comm, rows):
-    """read_packing's refusal of coinciding centres (closer than h5md.DUPLICATE_TOL x the
-    smallest diameter), found on the slabs: the message naming the first pair (i < j) and how
-    many there are, or None (collective)."""
+    """read_packing's refusal of coinciding centres (closer than DUPLICATE_TOL x the smallest
+    diameter), found on the slabs: the message naming the first pair (i < j) and how many there
+    are, or None (collective)."""
     dmin = comm.allreduce(float(rows.diam.min()) if len(rows.diam) else np.inf, op=min_op())
-    cut = h5md.DUPLICATE_TOL * dmin
+    cut = DUPLICATE_TOL * dmin
     if comm.Get_size() == 1:  # read_packing's own search (no slab copies of the positions)
-        found = cKDTree(rows.pos, boxsize=rows.L).query_pairs(cut, output_type="ndarray")
-        lo, hi = found.min(axis=1), found.max(axis=1)
+        found = coinciding_pairs(rows.pos, rows.diam, rows.L)
+        lo, hi = found[:, 0], found[:, 1]
     else:
         dom = SlabDomain.balanced(comm, rows.L, rows.pos)
         x, ids, _ = dom.migrate(rows.pos, rows.ids)
@@ -82,12 +81,14 @@ def duplicate_problem(comm, rows):
             f"pair(s))")
 
 
-def describe(comm, path):
-    """Read and validate ``path`` by rows (collective over the petsc4py or mpi4py ``comm``) and
-    describe it; each problem is one ParjamError, raised on every rank.  The rows are not kept."""
+def describe(comm, rows):
+    """Describe a packing from every rank's block of its rows (``rows``: parjam.files.rowio's
+    read_rows of the file; collective over the petsc4py or mpi4py ``comm``); coinciding centres
+    are one ParjamError, raised on every rank."""
     mpi = as_mpi(comm)
-    rows = rowio.read_rows(mpi, path)
-    rowio.collective(mpi, duplicate_problem(mpi, rows))
+    problems = [p for p in mpi.allgather(duplicate_problem(mpi, rows)) if p]
+    if problems:
+        raise ParjamError(problems[0])
     volume = exactsum.total(mpi, sphere_volume(rows.diam, rows.d), rows.start, rows.n)
     ends = np.array([-rows.diam.min(), rows.diam.max()] if len(rows.diam) else [-np.inf] * 2)
     mpi.Allreduce(ends.copy(), ends, op=max_op())
@@ -95,12 +96,11 @@ def describe(comm, path):
                        dispersity_label(mpi, rows.diam), float(ends[1] / -ends[0]))
 
 
-def start_rows(comm, path, alpha, phi):
-    """This rank's block rows of the packing in ``path`` (validated by ``describe`` before) as
-    statefile.StateRows, with the potential exponent ``alpha`` and the file's ``phi`` (from
+def start_rows(comm, rows, alpha, phi):
+    """This rank's block ``rows`` of a packing file (described by ``describe`` before) as
+    staterows.StateRows, with the potential exponent ``alpha`` and the file's ``phi`` (from
     ``describe``): what ``Jammer(comm, pack)`` made of the whole file, row for row."""
-    rows = rowio.read_rows(comm, path)
     meta = {"species": None if rows.species is None else rows.species.astype(np.int32),
-            "source": os.path.abspath(path)}
+            "source": os.path.abspath(rows.path)}
     return StateRows(comm, rows.n, rows.L, alpha, rows.eps, phi, rows.start, rows.pos, rows.diam,
                      meta, frozenset({"species"} if rows.species is not None else ()))

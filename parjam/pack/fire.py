@@ -113,7 +113,7 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snaps
     block rows), time step and counters.  Every SNAPSHOT_EVERY steps ``snapshot(make_state)``
     is called, if given, on all ranks; ``make_state()`` (collective) returns the current
     FireState, its velocities handed from the engine's rows to the block rows (no rank gathers
-    all N; parjam.pack.checkpoint writes them by row blocks).
+    all N; parjam.files.checkpoint writes them by row blocks).
     At those steps, on several ranks, the decomposition is redone from the positions alone
     (``SlabEngine.resync``) whether or not a snapshot is taken: sums over particles depend on
     which rank owns what in round-off, and a run resumed from a snapshot starts its

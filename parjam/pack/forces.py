@@ -5,7 +5,7 @@ FIRE does not run here: parjam.pack.fire hands the positions to a ``parjam.pack.
 (``start_engine``), which spreads the particles over the slabs of the spatial decomposition and
 keeps no array of length N on any rank; at the end (``stop_engine``) they come back to the Vec.
 Nothing here gathers the whole configuration: files and checkpoints go by rows
-(parjam.pack.statefile, parjam.files.checkpointio), and the gathers tests and scripts want (all N positions
+(parjam.pack.staterows, parjam.files.checkpointio), and the gathers tests and scripts want (all N positions
 or engine values on every rank) are parjam.testing.gather's, outside the packing path.
 
 For Newton and single evaluations the Verlet list holds the pairs that touch a rank's block
@@ -214,7 +214,7 @@ class ForceField:
         """Drop the neighbour list: the next evaluation rebuilds it at the current positions.
         Newton calls this, so that its matrix pattern (hence the MUMPS ordering and round-off)
         depends on the positions only, not on when the list was last built; a run resumed from a
-        checkpoint (parjam.pack.checkpoint) then reaches the same minimum bitwise."""
+        checkpoint (parjam.files.checkpoint) then reaches the same minimum bitwise."""
         self.pairs = None
 
     def contacts(self):

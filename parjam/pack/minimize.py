@@ -186,7 +186,7 @@ def minimize(ff, ftol=1e-13, e_stop=-np.inf, fire_rel=1e-4, progress=None, fire_
 
     ``snapshot(make_state)``, if given, is offered every few FIRE steps; ``make_state()``
     (collective) returns a MinimiseState, from which ``resume`` continues an interrupted call
-    with the same FIRE trajectory (parjam.pack.checkpoint).
+    with the same FIRE trajectory (parjam.files.checkpoint).
     """
     params = fire_params or fire_mod.params_for()
     total = MinResult("not converged", np.nan, np.nan)

@@ -25,7 +25,7 @@ them, and starts from them (parjam.pack.randomstart.start_rows makes a random st
 Packing is cut into them).  Every per-state number comes from parjam.pack.jamnet on the slabs
 (``network``), the stability check and the escapes from parjam.pack.stability on the same
 half-edges, Newton from the force field's distributed neighbour list; a State keeps its block
-rows (``state_rows``, parjam.pack.statefile), from which parjam.pack.ensemble writes its file by row
+rows (``state_rows``, parjam.pack.staterows), from which parjam.pack.ensemble writes its file by row
 blocks.  On one rank every number is the serial one bitwise.
 
 (Over 500 lines: the Jammer is one state machine over one force field and its checkpoint; every
@@ -45,7 +45,7 @@ from parjam.vib import hessian
 from parjam.errors import ParjamError, UnjammedError
 from parjam.pack.forces import ForceField
 from parjam.logstage import log_stage
-from parjam.pack.statefile import StateRows
+from parjam.pack.staterows import StateRows
 from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW,
                              DEFAULT_FTOL, DEFAULT_PHI_START, DEFAULT_RATIO)
 # the random start lives in parjam.pack.randomstart; these names stay importable from here
@@ -75,7 +75,7 @@ def per_particle(value, n):
 
 
 def block_rows(comm, pack):
-    """This rank's block rows (statefile.StateRows, PETSc's contiguous split of the ids) of a
+    """This rank's block rows (staterows.StateRows, PETSc's contiguous split of the ids) of a
     whole Packing every rank holds."""
     lo, hi = hessian.row_range(pack.n, comm)
     rows = {k for k, v in pack.meta.items() if per_particle(v, pack.n)}
@@ -109,10 +109,10 @@ class JamSettings:
 
 @dataclass
 class State:
-    """One minimised state of a configuration: this rank's rows of it (parjam.pack.statefile), or a
+    """One minimised state of a configuration: this rank's rows of it (parjam.pack.staterows), or a
     whole Packing where a caller made one (tests)."""
 
-    rows: object  # statefile.StateRows, or a system.Packing
+    rows: object  # staterows.StateRows, or a system.Packing
     result: minimize.MinResult
     label: str
     info: dict = field(default_factory=dict)
@@ -135,12 +135,12 @@ class Jammer:
 
     def __init__(self, comm, pack, settings=None, progress=None, checkpoint=None):
         """``pack``: a whole system.Packing (the same on every rank), or this rank's block rows
-        of one (statefile.StateRows; the random start of parjam.pack.randomstart.start_rows): then
+        of one (staterows.StateRows; the random start of parjam.pack.randomstart.start_rows): then
         no rank ever holds all N particles."""
         self.comm = comm
         self.settings = settings or JamSettings()
         self.progress = progress
-        self.checkpoint = checkpoint  # parjam.pack.checkpoint.Checkpoint, or None
+        self.checkpoint = checkpoint  # parjam.files.checkpoint.Checkpoint, or None
         self.calls = 0  # minimisations so far: the key of their checkpoint records
         # the state: positions only in the force field's block rows (no rank keeps all N of
         # them, the States and their files included: ``state_rows``); box, diameters and constants
@@ -222,7 +222,7 @@ class Jammer:
         self.ff.set_box(L)
 
     def state_rows(self):
-        """A copy of the current state's block rows (statefile.StateRows: positions, diameters,
+        """A copy of the current state's block rows (staterows.StateRows: positions, diameters,
         per-particle metadata of this rank's ids; O(N/P)), what a State keeps for its file."""
         ff = self.ff
         meta = {k: (np.array(v) if k in self.row_meta else v) for k, v in self.meta.items()}

@@ -28,7 +28,7 @@ from parjam.net.active import max_op, row_block
 from parjam.net.domain import as_mpi, send_rows
 from parjam.errors import ParjamError
 from parjam.pack.protocol import DEFAULT_ALPHA, DEFAULT_RATIO
-from parjam.pack.statefile import StateRows
+from parjam.pack.staterows import StateRows
 from parjam.net.system import Packing, sphere_volume
 
 DISPERSITIES = ("mono", "bi", "poly")
@@ -161,7 +161,7 @@ def spatial_rows(comm, lo, x, fields, L, dmax, n):
 
 def start_rows(comm, d, n, phi, alpha=DEFAULT_ALPHA, dispersity="mono", ratio=DEFAULT_RATIO,
                rng=None, eps=1.0):
-    """This rank's block rows (statefile.StateRows, the ids of parjam.net.active.row_block: the
+    """This rank's block rows (staterows.StateRows, the ids of parjam.net.active.row_block: the
     Jammer's) of the random start of ``random_packing``: the same configuration bitwise, made
     without any rank holding N particles (collective over ``comm``, petsc4py or mpi4py; None:
     one rank).  ``rng`` is left advanced past every draw, as a serial start leaves it."""

@@ -17,8 +17,8 @@ all contacts):
 - :mod:`.observables` -- modulation g, extension, extended subspace, f(x) (Sec. III, Appendix);
   :mod:`.trial` -- trial modes (Eq. rr) and omega_L (Eq. kkk).
 - :mod:`.scratch` -- the basis out of core (``--scratch``): a row-split array on disk.
-- :mod:`.analysis` -- the whole analysis; :mod:`.output` -- the HDF5 file (per-particle blocks
-  sent to rank 0 one rank at a time).
+- :mod:`.analysis` -- the whole analysis; :mod:`.gather` -- the ids its file records, gathered
+  on rank 0 (parjam.files.softmodes writes the file).
 
 Dense references for tests live in :mod:`parjam.testing.softmodes_reference`.
 """
@@ -42,14 +42,14 @@ from parjam.softmodes.observables import (E0_LADDER, coordinate_from_plane, exte
                                           overlap_without_localised, without_localised)
 from parjam.softmodes.operators import (relaxed_matrix, rigidity_matrix, stiffness_scale,
                                         translation_columns, translations)
-from parjam.softmodes.output import blocks_in_turn, cut_pairs, localised_ids, write
+from parjam.softmodes.gather import cut_pairs, localised_ids
 from parjam.softmodes.scratch import ScratchBasis, ScratchSpace, check_directory, scratch_space
 from parjam.softmodes.trial import energies, omega_L2, trial_modes
 
 __all__ = [
     "AXES", "BASIS_METHODS", "COLUMNS_DEFAULT", "COLUMNS_MAX", "CutSystem", "E0_LADDER",
     "NullBasis", "ParjamError", "Plane", "ScratchBasis", "ScratchSpace", "SoftModes",
-    "WholeCut", "all_localised_vectors", "allmax", "allreduce", "analyze", "blocks_in_turn",
+    "WholeCut", "all_localised_vectors", "allmax", "allreduce", "analyze",
     "bound_to", "characterise", "check_directory", "coordinate_from_plane", "count_below",
     "crossing", "cut_masks", "cut_pairs", "cut_system", "energies", "eq3_residual",
     "expected_zero_modes", "extended_basis", "extended_fraction", "extension", "gap_above",
@@ -59,5 +59,5 @@ __all__ = [
     "omega_L2", "orthonormality_error", "overlap_function", "overlap_without_localised",
     "parse_cut", "prepare", "random_block", "relaxed_matrix", "rigidity_matrix",
     "scratch_space", "stiffness_scale", "subdivision_planes", "translation_columns",
-    "translations", "trial_modes", "variational_count", "without_localised", "write",
+    "translations", "trial_modes", "variational_count", "without_localised",
 ]

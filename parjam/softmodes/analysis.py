@@ -13,7 +13,7 @@ from parjam.errors import ParjamError
 from parjam.softmodes.basis import COLUMNS_DEFAULT, eq3_residual
 from parjam.softmodes.counting import null_count, variational_count
 from parjam.softmodes.cut import CutSystem, bound_to
-from parjam.softmodes.linalg import orthonormality_error
+from parjam.softmodes.linalg import columns_of, orthonormality_error
 from parjam.softmodes.nullspace import null_basis
 from parjam.softmodes.observables import (coordinate_from_plane, extended_basis,
                                           extended_fraction, gradient_bound, modulation,
@@ -66,6 +66,12 @@ class SoftModes:
     def c_nontrivial(self):
         """Lower bound of f once the trivially localised modes are projected out."""
         return float(self.overlap[:, 2].min())
+
+    def basis_block(self, start, block):
+        """(particle ids, modes start.. start + block of this rank's rows of the basis as
+        (modes, particles, d)): what the file's /softmodes/basis holds of this rank."""
+        cols = columns_of(self.V, start, min(start + block, self.n_soft))
+        return self.cs.ids, cols.T.reshape(cols.shape[1], self.cs.n_local, self.cs.d)
 
     def summary(self):
         cs = self.cs

@@ -6,6 +6,7 @@ null space."""
 
 import numpy as np
 
+from parjam.net.blocks import contact_blocks
 from parjam import env
 from parjam.net import potential
 from parjam.vib import hessian
@@ -16,7 +17,7 @@ def relaxed_matrix(comm, cs, contacts, fmt="aij", shift=0.0):
     = S^T K S) of the half-edges ``contacts`` (``cs.kept`` or ``cs.contacts``) over the N'
     non-rattlers; ``fmt`` "aij" (MatMult, KSP) or "sbaij" (MUMPS inertia), assembled directly;
     ``shift`` is added to the diagonal."""
-    blocks = hessian.contact_blocks(contacts.rij, contacts.r, contacts.sigma, cs.alpha, cs.eps,
+    blocks = contact_blocks(contacts.rij, contacts.r, contacts.sigma, cs.alpha, cs.eps,
                                     kind="relaxed")
     return hessian.assemble(comm, cs.n, cs.d, contacts.i, contacts.j, blocks, shift=shift,
                             rows=(cs.lo, cs.hi), fmt=fmt)

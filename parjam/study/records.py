@@ -6,7 +6,7 @@ there, in particle-id order."""
 
 import numpy as np
 
-from parjam.files import rowio
+from parjam.net import active
 from parjam.vib import kpm, kpm_dos, moduli, observables, spectrum
 from parjam import softmodes as sm
 from parjam.errors import ParjamError
@@ -15,7 +15,7 @@ from parjam.errors import ParjamError
 def network_record(comm, rows, net=None):
     """z, dz, p and the rest of the contact-network summary of a state's file rows (``rows``,
     rowio.read_rows; parjam.net.active)."""
-    net = net if net is not None else rowio.network(comm, rows)
+    net = net if net is not None else active.from_rows(comm, rows)
     rec = dict(net.summary())
     rec["phi_c"] = float(rows.meta.get("phi_c", np.nan))
     # 1 for a stable minimum, 0 for a state the packing protocol could not make one (flagged,
@@ -44,7 +44,7 @@ def dense_eigenvalues(comm, system, kind):
 def spectrum_record(comm, rows, kind, req, tol):
     """The spectrum a state needs (req from parjam.study.plan.spectrum_needs, with its solver), with
     D0 and omega* (parjam.vib.observables) and the per-mode sums when they were computed."""
-    system = spectrum.distributed_system(rowio.network(comm, rows))
+    system = spectrum.distributed_system(active.from_rows(comm, rows))
     sol = req["solver"]
     rec = {"solver": sol, "n_modes_total": system.n_modes, "n_active": system.n}
     if req.get("kpm"):  # D(omega) by KPM (dos = { method = "kpm" }): the moments are stored
@@ -125,7 +125,7 @@ def kpm_plateau_summary(comm, system, kind, omega):
 
 
 def moduli_record(comm, rows):
-    mod = moduli.compute(comm=comm, net=rowio.network(comm, rows))
+    mod = moduli.compute(comm=comm, net=active.from_rows(comm, rows))
     rec = {k: v for k, v in mod.summary().items() if v is not None and np.isscalar(v)}
     rec["stiffness"] = mod.stiffness
     return rec
@@ -136,7 +136,7 @@ def softmodes_record(comm, rows, opts):
     if opts["subdivide"] is not None:
         planes += sm.subdivision_planes(opts["subdivide"], rows.d)
     cs = sm.prepare(None, list(dict.fromkeys(planes)), opts["allow_hyperstatic"],
-                    net=rowio.network(comm, rows))
+                    net=active.from_rows(comm, rows))
     res = sm.analyze(comm, cs, opts["e0"], opts["bins"])
     rec = {k: (np.nan if v is None else v) for k, v in res.summary().items()}
     rec.update(overlap=res.overlap, extension=res.e, trial_energy=res.trial_energy,

@@ -15,43 +15,16 @@ import os
 import sys
 import time
 
-import h5py
-import numpy as np
-
 from parjam import env
-from parjam.files import h5md, outputs, rowio
-from parjam.pack import ensemble
+from parjam.files import h5md, outputs, rowio, stagefile
+from parjam.study import members
 from parjam.errors import ParjamError, UnjammedError
 from parjam.net.fluctuations import contact_fluctuations
-from parjam.plot.spectra import dos_pictures
 from parjam.ranks import member_groups
 from parjam.study.records import moduli_record, network_record, softmodes_record, spectrum_record
 from parjam.study.summary import summary_table, write_summary
 
 EXIT_INTERRUPTED = 5
-
-
-# --------------------------------------------------------------------------- member files
-
-def write_part(path, data, attrs=None):
-    """{state: {name: array or scalar}} -> /<state>/<name>, atomically."""
-    with h5md.atomic_h5(path) as f:
-        for key, val in (attrs or {}).items():
-            f.attrs[key] = val
-        for state, values in data.items():
-            g = f.create_group(state)
-            for name, val in values.items():
-                if isinstance(val, str):
-                    g.attrs[name] = val
-                else:
-                    g.create_dataset(name, data=np.asarray(val))
-
-
-def read_part(path):
-    """A member's file of an analysis stage as {state: {name: value}} (write_part's inverse)."""
-    with h5py.File(path, "r") as f:
-        return {state: {**{k: v[()] for k, v in f[state].items()}, **dict(f[state].attrs)}
-                for state in f}
 
 
 # --------------------------------------------------------------------------- the runner
@@ -139,8 +112,6 @@ class Runner:
                     stopped = self.run_stage(st, comm, mine)
         finally:
             stage.pop()
-        if "pictures" in self.scene.observables and self.mpi.Get_rank() == 0:
-            self.pictures()
         self.mpi.Barrier()
         return 0
 
@@ -176,7 +147,7 @@ class Runner:
             sub = self.progress.sub(f"pack {st.system.name} member {m}: ")
             sub.enabled = False  # the bisection's lines would drown the stage progress
             try:
-                ensemble.pack_member(protocol, m, comm, sub)
+                members.pack_member(protocol, m, comm, sub)
             except UnjammedError as exc:  # rare: the member is left out, the ensemble goes on
                 if comm.getRank() == 0:
                     outputs.write_bytes(self.failed_path(st.system, m), f"{exc}\n".encode())
@@ -197,7 +168,7 @@ class Runner:
                     print(f"parjam: warning: {st.kind} {st.system.name} member {m} {label}: "
                           f"{exc}; recorded as missing", file=sys.stderr, flush=True)
         if comm.getRank() == 0:
-            write_part(self.part_path(st, m), data,
+            stagefile.write_part(self.part_path(st, m), data,
                        {"stage": st.name, "member": m, "kind": st.kind})
 
     def state_record(self, st, comm, path, label):
@@ -228,7 +199,7 @@ class Runner:
             for dep in self.stages:
                 if dep.key in st.deps and dep.kind != "pack":
                     tag = dep.kind + (f"/{dep.matrix}" if dep.matrix else "")
-                    by_kind[tag] = [read_part(self.part_path(dep, m))
+                    by_kind[tag] = [stagefile.read_part(self.part_path(dep, m))
                                     for m in range(self.scene.members)
                                     if not self.failed(st.system, m)]
             failed = [m for m in range(self.scene.members) if self.failed(st.system, m)]
@@ -243,8 +214,10 @@ class Runner:
         return "\n".join(lines)
 
     def pictures(self):
+        """(summary file, figure stem, dpi) of each system's D(omega) figures, when the scene
+        asks for [observables.pictures] (drawn by ``parjam run``, parjam.plot.spectra)."""
+        if "pictures" not in self.scene.observables:
+            return []
         fig_dir = os.path.join(self.out, "figures")
-        os.makedirs(fig_dir, exist_ok=True)
         dpi = self.scene.observables["pictures"]["dpi"]
-        for name, path in self.summaries.items():
-            dos_pictures(path, os.path.join(fig_dir, name), dpi)
+        return [(path, os.path.join(fig_dir, name), dpi) for name, path in self.summaries.items()]

@@ -1,10 +1,6 @@
 """The dynamical matrix of a packing (the paper's Eq. (1)) as a distributed PETSc MatAIJ.
 
-For a contact ij with unit vector n = r_ij / r, the d x d block is
-
-    K_ij = V''(r) n n^T  +  (V'(r)/r) (I - n n^T)
-           stiffness (M)     stress / "transverse" term (M'), negative for repulsion
-
+For a contact ij the d x d block K_ij is parjam.net.blocks' (re-exported here with its KINDS),
 and the Hessian has -K_ij off the diagonal and sum_j K_ij on the diagonal (unit masses).
 ``kind`` selects the full matrix D = M + M', the relaxed-spring matrix M (Section III) or M'.
 
@@ -24,25 +20,7 @@ checked in the tests through MatGetInfo).  Two ways to give the contacts:
 import numpy as np
 
 from parjam import env
-from parjam.net import potential
-
-KINDS = ("full", "relaxed", "stress")
-
-
-def contact_blocks(rij, r, sigma, alpha, eps=1.0, kind="full"):
-    """Per-contact d x d blocks K_ij of Eq. (1) for the requested ``kind``."""
-    if kind not in KINDS:
-        raise ValueError(f"unknown matrix kind {kind!r}; choose from {', '.join(KINDS)}")
-    d = rij.shape[1]
-    n = rij / r[:, None]
-    nn = n[:, :, None] * n[:, None, :]
-    blocks = np.zeros((len(r), d, d))
-    if kind in ("full", "relaxed"):
-        blocks += potential.d2V(r, sigma, alpha, eps)[:, None, None] * nn
-    if kind in ("full", "stress"):
-        t = potential.dV(r, sigma, alpha, eps) / r
-        blocks += t[:, None, None] * (np.eye(d)[None] - nn)
-    return blocks
+from parjam.net.blocks import KINDS, contact_blocks  # noqa: F401 (what it assembles)
 
 
 def row_range(n, comm):

@@ -410,7 +410,7 @@ def dos_summary(res, plateau=None, grid=4096):
 
 def dos_record(res, bins=40, omega_max=None, plateau=None):
     """D(omega) on linear bins [0, omega_max] with its probe error, D0 and omega*, in the layout
-    of parjam.files.modes_io.dos_record."""
+    of parjam.vib.observables.dos_record."""
     top = omega_max or res.omega_max
     edges = observables.dos_edges(top, bins)
     density, err = res.binned_with_error(edges)

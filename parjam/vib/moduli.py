@@ -52,7 +52,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from parjam import env
-from parjam.files import h5md
 from parjam.net import active, potential
 from parjam.vib import factor, hessian, translations
 from parjam.errors import ParjamError
@@ -383,21 +382,3 @@ def compute(pack=None, comm=None, progress=None, net=None, distributed=None):
     c_l = lagrangian_tensor(c_u, s)
     return Moduli(d, rs.n, rs.n_contacts, V, float(-np.trace(s) / d), s, c_aff, c_u, c_l,
                   stress_strain_tensor(c_l, s), report)
-
-
-def write(path, mod, prov=None):
-    """Write /moduli/* (tensors, scalars, solver report) atomically; call on one rank."""
-    with h5md.atomic_h5(path) as f:
-        h5md.write_h5md_header(f, prov)
-        g = f.create_group("moduli")
-        for key, val in mod.summary().items():
-            if val is None or isinstance(val, list):
-                continue
-            g.attrs[key] = val
-        for name in ("stress", "c_affine", "c_energy", "c_lagrangian", "stiffness"):
-            g.create_dataset(name, data=getattr(mod, name))
-        s = g.create_group("solver")
-        s.create_dataset("residuals", data=np.array(mod.solver["residuals"]))
-        s.create_dataset("iterations", data=np.array(mod.solver["iterations"]))
-        for key in ("tau", "ksp_type", "pc_type", "rtol", "max_residual"):
-            s.attrs[key] = mod.solver[key]

@@ -154,3 +154,32 @@ def ensemble_mean(values):
     n = np.sum(np.isfinite(a), axis=0)
     err = np.nanstd(a, axis=0, ddof=1) / np.sqrt(n) if a.shape[0] > 1 else np.zeros_like(mean)
     return mean, err
+
+
+MAX_AUTO_BINS = 40
+
+
+def auto_bins(n_frequencies):
+    """Bins for ``n`` computed frequencies when none are asked for: about sqrt(n), between 3 and
+    40, so that a few lowest modes (``--k 20``) give a histogram rather than a comb of bins
+    holding 0 or 1 mode."""
+    return int(min(MAX_AUTO_BINS, max(3, round(np.sqrt(n_frequencies)))))
+
+
+def dos_record(omega, n_modes, bins=None, log=False, omega_min=None, plateau=None):
+    """D(omega) of one spectrum on bins up to its highest computed frequency (``bins`` None:
+    :func:`auto_bins`), with D0 and omega* (definitions above)."""
+    pos = np.asarray(omega)[np.asarray(omega) > 0]
+    if len(pos) == 0:
+        raise ParjamError("no positive frequency: cannot build D(omega)")
+    bins = auto_bins(len(pos)) if bins is None else bins
+    edges = dos_edges(float(pos.max()), bins, log, omega_min)
+    centres, density = density_of_states(pos, n_modes, edges)
+    d0, wstar, window = dos_summary(pos, n_modes, plateau)
+    return {"omega": centres, "edges": edges, "density": density,
+            "binning": "log" if log else "linear",
+            "normalisation": "per mode: counts / ((d N' - d) * bin width)",
+            "n_modes_total": int(n_modes), "D0": d0, "omega_star": wstar,
+            "plateau_window": np.array(window, dtype=float),
+            "definition": "D0 = mean density over the plateau window; omega* = omega_half / 2, "
+                          "omega_half the first frequency where N(omega)/(n omega) >= D0/2"}

@@ -35,13 +35,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from parjam.net.blocks import KINDS, contact_blocks
 from parjam import env
 from parjam.net import network
 from parjam.vib import factor, hessian, observables, solver_choice, translations
 from parjam.errors import ParjamError, UnjammedError
 
 METHODS = ("auto", "dense", "sinvert", "slice")
-MATRICES = hessian.KINDS
+MATRICES = KINDS
 DENSE_LIMIT_DOF = 20000  # --method dense refused above (a 20000^2 matrix is 3.2 GB)
 ZERO_TOL = 1e-9  # |lambda| / ||D||_inf below which an eigenvalue belongs to the zero cluster
 PREFIX = "modes_"
@@ -96,7 +97,7 @@ class ActiveSystem:
 
     def blocks(self, kind):
         """Per-contact (or per-half-edge) blocks K_ij of Eq. (1)."""
-        return hessian.contact_blocks(self.rij, self.r, self.sigma, self.alpha, self.eps, kind)
+        return contact_blocks(self.rij, self.r, self.sigma, self.alpha, self.eps, kind)
 
     def particle_keys(self, comm):
         """Particle id of each of this rank's operator rows (rank-count independent keys)."""

@@ -126,7 +126,7 @@ def test_ase_reads_exported_xyz_with_species_radius_rattlers(tmp_path, d):
 
 def test_older_parjam_files_still_read(tmp_path):
     """Files written before the H5MD time-series layout: plain box edges, scalar observables."""
-    from parjam.pack.ensemble import rows_from_files
+    from parjam.study.members import rows_from_files
 
     pack = h5md.read_packing(REF3D)
     net = analyze(pack)

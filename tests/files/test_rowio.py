@@ -10,6 +10,7 @@ import pytest
 from mpi4py import MPI
 
 from parjam.files import rowio
+from parjam.net import active
 from parjam.errors import ParjamError
 from parjam.files.h5md import read_packing
 from parjam.net.network import analyze
@@ -31,7 +32,7 @@ def test_rows_are_the_files_rows(path):
     assert np.array_equal(rows.pos, pack.pos[rows.start:rows.stop])
     assert np.array_equal(rows.diam, pack.diam[rows.start:rows.stop])
     assert rows.stop - rows.start <= pack.n // COMM.size + 1  # no rank holds all N (P > 1)
-    net = rowio.network(COMM, path)
+    net = active.from_rows(COMM, rowio.read_rows(COMM, path))
     assert net.summary() == pytest.approx(analyze(pack).summary(), rel=1e-12, abs=1e-16)
 
 
@@ -80,5 +81,5 @@ def test_bad_rows_fail_on_every_rank_as_read_packing(shared_tmp, name):
     with pytest.raises(ParjamError, match=message) as serial:
         read_packing(path)
     with pytest.raises(ParjamError, match=message) as got:
-        rowio.network(COMM, path)
+        active.from_rows(COMM, rowio.read_rows(COMM, path))
     assert str(got.value).split(":")[0] == str(serial.value).split(":")[0]

@@ -14,6 +14,7 @@ import pytest
 from mpi4py import MPI
 
 from parjam.files import h5md, rowio
+from parjam.pack import staterows
 from parjam.net import active
 from parjam.errors import ParjamError
 from parjam.net.network import analyze, contact_forces
@@ -71,13 +72,13 @@ def test_home_rows_puts_scattered_ids_in_id_order():
     perm = np.random.default_rng(3).permutation(n)
     mine = perm[COMM.rank::COMM.size]  # any rank may hold any id
     mine = mine[mine % 7 != 0]  # holes: not every id exists (rattlers)
-    ids, vals = rowio.home_rows(COMM, n, mine, np.stack([mine * 10.0, -mine], axis=1))
+    ids, vals = active.home_rows(COMM, n, mine, np.stack([mine * 10.0, -mine], axis=1))
     start, stop = active.row_block(n, COMM)
     assert np.all((ids >= start) & (ids < stop)) and np.all(np.diff(ids) > 0)
     assert np.array_equal(vals, np.stack([ids * 10.0, -ids], axis=1))
     every = np.concatenate(COMM.allgather(ids))
     assert np.array_equal(every, np.array([k for k in range(n) if k % 7 != 0]))
-    alone, none = rowio.home_rows(COMM, n, mine)
+    alone, none = active.home_rows(COMM, n, mine)
     assert np.array_equal(alone, ids) and none is None
 
 
@@ -91,7 +92,7 @@ def test_packing_rows_equal_write_packing(where):
     c0, c1 = active.row_block(len(c), COMM)
     sl = slice(c0, c1)
     fmag = np.linalg.norm(contact_forces(pack, c), axis=1)
-    part = rowio.PackingRows(
+    part = staterows.PackingRows(
         pos=pack.pos[start:stop], diam=pack.diam[start:stop],
         species=np.asarray(pack.meta["species"], np.int32)[start:stop]
         if "species" in pack.meta else np.zeros(stop - start, np.int32),

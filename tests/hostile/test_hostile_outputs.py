@@ -146,7 +146,7 @@ def no_work(monkeypatch):
     """Any reading of a packing or spectrum, any pack member or scene stage is work: forbidden
     (the output checks must come first)."""
     from parjam.files import h5md as pio, modes_io
-    from parjam.pack import ensemble
+    from parjam.study import members
     from parjam.commands import run as runmod
 
     def forbidden(*a, **k):
@@ -154,7 +154,7 @@ def no_work(monkeypatch):
 
     monkeypatch.setattr(pio, "read_packing", forbidden)
     monkeypatch.setattr(modes_io, "read_spectrum", forbidden)
-    monkeypatch.setattr(ensemble, "pack_member", forbidden)
+    monkeypatch.setattr(members, "pack_member", forbidden)
     monkeypatch.setattr(runmod.Runner, "run", forbidden)
 
 

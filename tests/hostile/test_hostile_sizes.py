@@ -65,7 +65,7 @@ def no_work():
     work: forbidden while a size is checked (lengths' --kmax needs the box: it may read)."""
     from parjam import lengths
     from parjam.files import h5md as pio, modes_io
-    from parjam.pack import ensemble
+    from parjam.study import members
     from parjam.commands import run as runmod
 
     def forbidden(*a, **k):
@@ -74,7 +74,7 @@ def no_work():
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(pio, "read_packing", forbidden)
         mp.setattr(modes_io, "read_spectrum", forbidden)
-        mp.setattr(ensemble, "pack_member", forbidden)
+        mp.setattr(members, "pack_member", forbidden)
         mp.setattr(runmod.Runner, "run", forbidden)
         mp.setattr(lengths, "compute", forbidden)
         yield mp

@@ -1,4 +1,4 @@
-"""Checkpoints inside a member (parjam.pack.checkpoint): a `parjam pack` interrupted anywhere in a
+"""Checkpoints inside a member (parjam.files.checkpoint): a `parjam pack` interrupted anywhere in a
 member's protocol resumes from its last checkpoint, loses and repeats no minimisation work, and
 ends with the same files, bitwise, as an uninterrupted run.  In-process tests run serially and
 with the two ranks sharing the member (distributed minimisation: there the same minimum to
@@ -16,7 +16,7 @@ from conftest import subprocess_env
 
 from parjam import cli
 from parjam.files import checkpointio, manifest
-from parjam.pack import checkpoint
+from parjam.files import checkpoint
 from parjam.errors import ParjamError
 from parjam.pack.engine import SlabEngine
 from parjam.pack.forces import ForceField

@@ -16,6 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
+from parjam.net.blocks import contact_blocks
 from parjam import env
 from parjam.files import h5md
 from parjam.net import network
@@ -59,7 +60,7 @@ def dense_active_hessian(pack):
     particle indices: the reference of the distributed stability check."""
     net = network.analyze(pack)
     c = network.active_contacts(net)
-    blocks = hessian.contact_blocks(c.rij, c.r, c.sigma, pack.alpha, pack.eps, "full")
+    blocks = contact_blocks(c.rij, c.r, c.sigma, pack.alpha, pack.eps, "full")
     n = net.n_active
     return hessian.dense_hessian(n, pack.d, c.i, c.j, blocks), np.flatnonzero(~net.rattler)
 
@@ -143,7 +144,7 @@ def test_unstabilisable_state_is_flagged_not_dropped(ladder, world, monkeypatch)
 def test_flagged_member_written_and_counted(tmp_path, monkeypatch, capsys):
     """pack_member with the stabilisation failing for one state: every file is written, the
     failing one with /observables/stable = 0, and the ensemble's summary line counts it."""
-    from parjam.pack import ensemble
+    from parjam.study import members
     from parjam.progress import Progress
     from parjam.pack.protocol import PackingProtocol
 
@@ -166,16 +167,16 @@ def test_flagged_member_written_and_counted(tmp_path, monkeypatch, capsys):
         return out
 
     monkeypatch.setattr(Jammer, "refine_phi_c", remember)
-    rows = ensemble.pack_member(args, 0, PETSc.COMM_SELF, Progress(PETSc.COMM_WORLD, True))
+    rows = members.pack_member(args, 0, PETSc.COMM_SELF, Progress(PETSc.COMM_WORLD, True))
     assert {r["state"] for r in rows} == {"phi_c", "dphi1.0e-06", "dphi1.0e-03"}
     flags = {}
     for r in rows:
         with h5py.File(r["file"], "r") as f:
             flags[r["state"]] = int(h5md.observable(f, "stable"))
     assert flags["dphi1.0e-06"] == 0 and flags["dphi1.0e-03"] == 1
-    line = ensemble.stability_line(rows)
+    line = members.stability_line(rows)
     assert "1 of 3 states" in line and "dphi1.0e-06" in line
-    back = ensemble.rows_from_files(str(tmp_path), 0,
+    back = members.rows_from_files(str(tmp_path), 0,
                                     [os.path.basename(r["file"]) for r in rows])
     assert sorted(r["stable"] for r in back) == [0, 1, 1]
 
@@ -220,7 +221,7 @@ def test_compression_cycle_stabilises_where_the_escapes_cannot(ladder, monkeypat
     made a stable minimum by the compression cycle (to 10x its dphi and back), at the same
     volume fraction and pressure.  The cycle's minimisations go through the checkpoint: a run
     resumed from it replays them and ends in the same state, bit for bit."""
-    from parjam.pack.checkpoint import Checkpoint
+    from parjam.files.checkpoint import Checkpoint
 
     d, (phi_c, packs) = ladder
     stable = packs[1]  # dphi = 1e-8
@@ -259,6 +260,7 @@ def test_virial_dphi_disagreeing_with_the_label_is_flagged(ladder, capsys):
     the one its network jams at (here: labelled 1e-4, really 1e-6 from jamming, as a state
     that re-jammed on the way) is recorded with dphi_virial_ok = 0 and said in one line."""
     from parjam.pack import ensemble
+    from parjam.study import members
 
     d, (phi_c, packs) = ladder
     states = [packing.State(p, MinResult("converged", 0.0, 0.0), f"dphi{dphi:.1e}",
@@ -278,8 +280,8 @@ def test_virial_dphi_disagreeing_with_the_label_is_flagged(ladder, capsys):
     assert "re-jammed at another phi_c" in err and "1.00e-06" in err
     rows = [{"member": 0, "state": st.label, "dphi_virial_ok": st.info["dphi_virial_ok"]}
             for st in states + [off]]
-    assert ensemble.label_line(rows[:-1]) is None
-    assert ensemble.label_line(rows).startswith("labels: 1 state(s) re-jammed")
+    assert members.label_line(rows[:-1]) is None
+    assert members.label_line(rows).startswith("labels: 1 state(s) re-jammed")
 
 
 def test_unjammed_ladder_step_keeps_the_jammed_states(shared_tmp, monkeypatch, capsys):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
+from parjam.net.blocks import contact_blocks
 from parjam import env
 from parjam.net import network, potential
 from parjam.pack import jamnet, stability
@@ -39,7 +40,7 @@ def dense_active(pack):
     """Serial dense D of the non-rattlers (active numbers in particle order), their ids."""
     net = network.analyze(pack)
     c = network.active_contacts(net)
-    blocks = hessian.contact_blocks(c.rij, c.r, c.sigma, pack.alpha, pack.eps, "full")
+    blocks = contact_blocks(c.rij, c.r, c.sigma, pack.alpha, pack.eps, "full")
     return (hessian.dense_hessian(net.n_active, pack.d, c.i, c.j, blocks),
             np.flatnonzero(~net.rattler))
 

@@ -19,9 +19,10 @@ from conftest import ROOT, run_on_ranks, subprocess_env
 from mpi4py import MPI
 
 from parjam import cli, env
-from parjam.files import h5md, importer
+from parjam.files import h5md, importer, rowio
 from parjam.net import active
-from parjam.pack import ensemble, filestart
+from parjam.pack import filestart
+from parjam.study import members
 from parjam.commands import pack as pack_cmd
 from parjam.errors import ParjamError
 from parjam.pack.packing import block_rows, random_packing
@@ -76,13 +77,13 @@ def test_rows_and_description_are_the_whole_files(starts, kind):
     importer.from_file + packing.block_rows: every number bitwise."""
     path = starts[kind]
     whole = h5md.read_packing(path)
-    about = filestart.describe(COMM, path)
+    about = filestart.describe(COMM, rowio.read_rows(COMM, path))
     assert (about.d, about.n) == (whole.d, whole.n)
     assert about.phi == whole.phi  # bitwise: exactsum in numpy's order
     assert about.dispersity == {1: "mono", 2: "bi"}.get(len(set(whole.diam.tolist())), "poly")
     assert about.dispersity == kind
     assert about.ratio == float(whole.diam.max() / whole.diam.min())
-    new = filestart.start_rows(WORLD, path, 2.5, about.phi)
+    new = filestart.start_rows(WORLD, rowio.read_rows(WORLD, path), 2.5, about.phi)
     old = block_rows(WORLD, importer.from_file(path, 2.5))
     for name in ("n", "L", "alpha", "eps", "phi", "lo", "row_meta"):
         assert getattr(new, name) == getattr(old, name), name
@@ -108,7 +109,7 @@ def test_coinciding_centres_are_refused_as_read_packing_does(shared_tmp):
         h5md.read_packing(path)
     assert "particles 2 and 35 coincide (1 duplicated pair(s))" in str(exc.value)
     with pytest.raises(ParjamError) as got:
-        filestart.describe(COMM, path)
+        filestart.describe(COMM, rowio.read_rows(COMM, path))
     assert str(got.value) == str(exc.value)
 
 
@@ -137,8 +138,8 @@ def test_pack_from_makes_the_files_of_the_whole_file_start(starts, shared_tmp, m
     is shared, and two shared runs agree to round-off only (their MUMPS factorisations)."""
     new, old = os.path.join(shared_tmp, "from-new"), os.path.join(shared_tmp, "from-old")
     assert cli.main(["pack", "--from", starts["bi"], "--out", new, *PROTOCOL]) == 0
-    monkeypatch.setattr(ensemble.filestart, "start_rows",
-                        lambda comm, path, alpha, phi: importer.from_file(path, alpha))
+    monkeypatch.setattr(members.filestart, "start_rows",
+                        lambda comm, rows, alpha, phi: importer.from_file(rows.path, alpha))
     assert cli.main(["pack", "--from", starts["bi"], "--out", old, *PROTOCOL]) == 0
     assert_same_files(new, old, exact=COMM.Get_size() == 1)
     with h5py.File(os.path.join(new, "member0000_dphi1.0e-03.h5")) as f:
@@ -178,7 +179,7 @@ def test_bad_start_is_one_line_and_exit_2_before_any_work(shared_tmp, monkeypatc
     def forbidden(*a, **k):
         raise AssertionError("work started")
 
-    monkeypatch.setattr(ensemble, "pack_member", forbidden)
+    monkeypatch.setattr(members, "pack_member", forbidden)
     p = random_packing(3, 40, 0.3, rng=np.random.default_rng(7))
     wide = write_start(os.path.join(shared_tmp, "from-d4.h5"), np.tile(p.pos, (1, 2))[:, :4],
                        p.diam, p.L)

@@ -13,6 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
+from parjam.files import softmodes as soft_file
 from parjam import env, softmodes as sm
 from parjam.files import h5md
 from parjam.net import network
@@ -141,7 +142,8 @@ def test_written_file_is_the_same_on_one_rank_and_all_ranks(tmp_all):
     every = os.path.join(tmp_all, "world.h5")
     for comm, path in ((SELF, one), (WORLD, every)):
         res = sm.analyze(comm, sm.prepare(pack, cuts, comm=comm), e0=0.1, columns=64)
-        sm.write(comm, path, res, vectors=True, block=50)
+        soft_file.write(comm, path, res, sm.cut_pairs(res.cs), sm.localised_ids(res.cs),
+                        vectors=True, block=50)
     WORLD.tompi4py().Barrier()
     net = network.analyze(pack)
     with h5py.File(one, "r") as f, h5py.File(every, "r") as g:

@@ -14,6 +14,7 @@ from parjam.errors import ParjamError
 from parjam.study.fits import fit_power
 from parjam.pack.protocol import PackingProtocol
 from parjam.study import plan as study_plan
+from parjam.files import stagefile
 from parjam.study import runner as runmod
 from parjam.study import scene as sc
 from parjam.study.summary import read_summary
@@ -391,7 +392,7 @@ small_dof = 0
     for st in runner.stages:
         if st.kind != "spectrum":
             continue
-        rec = runmod.read_part(runner.part_path(st, 0))["dphi1.0e-02"]
+        rec = stagefile.read_part(runner.part_path(st, 0))["dphi1.0e-02"]
         w = observables.frequency(
             np.linalg.eigvalsh(spectrum.dense_matrix(system, st.matrix))[system.d:])
         ref = w[:5] if st.matrix == "full" else w[w <= 0.3]
@@ -421,7 +422,7 @@ small_dof = 0
     st = next(x for x in runner.stages if x.kind == "spectrum")
     assert st.params["dphi1.0e-02"]["solver"] == "sinvert"
     for member in range(2):
-        rec = runmod.read_part(runner.part_path(st, member))["dphi1.0e-02"]
+        rec = stagefile.read_part(runner.part_path(st, member))["dphi1.0e-02"]
         _, (pack,) = make_jammed(3, 256, [1e-2], seed=3, member=member)
         system = spectrum.active_system(pack)
         w = observables.frequency(
@@ -437,17 +438,17 @@ small_dof = 0
 
 
 def test_a_member_that_does_not_jam_is_left_out(shared_tmp, world, monkeypatch):
-    from parjam.pack import ensemble
     from parjam.errors import UnjammedError
+    from parjam.study import members
 
-    real = ensemble.pack_member
+    real = members.pack_member
 
     def flaky(args, member, comm, progress):
         if member == 1:
             raise UnjammedError("unjammed at phi = 0.6 (test)", collective=False)
         return real(args, member, comm, progress)
 
-    monkeypatch.setattr(ensemble, "pack_member", flaky)
+    monkeypatch.setattr(members, "pack_member", flaky)
     text = scene_text("contacts = true").replace("members = 2", "members = 3")
     out = os.path.join(shared_tmp, "failing")
     code, runner = run_scene(text, out, world)
@@ -465,7 +466,7 @@ def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world
     """A ladder state with fewer contacts than isostatic makes the analysis raise on the ranks
     of one member only: the run records it as missing instead of stopping (on 2 ranks the
     other group would otherwise wait for ever)."""
-    from parjam.files import rowio
+    from parjam.net import active
     from parjam.vib import spectrum
     from parjam.errors import UnjammedError
 
@@ -476,14 +477,14 @@ def test_a_state_that_cannot_be_analysed_is_recorded_not_fatal(shared_tmp, world
             raise UnjammedError("unjammed packing (test)")
         return real(net)
 
-    real_network = rowio.network
+    real_network = active.from_rows
 
     def tagged(comm, rows):  # the network remembers the file it was read from
         net = real_network(comm, rows)
         net.source = rows.path
         return net
 
-    monkeypatch.setattr(rowio, "network", tagged)
+    monkeypatch.setattr(active, "from_rows", tagged)
     monkeypatch.setattr(spectrum, "distributed_system", fragile)
     out = os.path.join(shared_tmp, "fragile")
     code, runner = run_scene(scene_text("dos = { matrices = ['relaxed'] }"), out, world)

@@ -10,10 +10,12 @@ import pytest
 
 from parjam import env
 from parjam.files import h5md, rowio
+from parjam.net import active
 from parjam.vib import kpm_dos, observables, spectrum
 from parjam.errors import ParjamError
 from parjam.progress import Progress
 from parjam.study import plan as study_plan
+from parjam.files import stagefile
 from parjam.study import runner as runmod
 from parjam.study import scene as sc
 from parjam.study.summary import read_summary
@@ -87,7 +89,7 @@ small_dof = 0
     system = scene.systems[0]
     for st in (x for x in runner.stages if x.kind == "spectrum"):
         for m in range(2):
-            part = runmod.read_part(runner.part_path(st, m))
+            part = stagefile.read_part(runner.part_path(st, m))
             for lab in ("dphi1.0e-02", "dphi1.0e-03"):
                 rec = part[lab]
                 w, n_modes = dense_omega(runner.pack_path(system, m, lab), st.matrix)
@@ -116,7 +118,7 @@ def test_kpm_moments_do_not_depend_on_the_ranks(world):
     the whole packing on one rank."""
     path = os.path.join(os.path.dirname(__file__), "data", "ref_d3_mono_N128_dphi1e-03.h5")
     rows = rowio.read_rows(world, path)
-    dist = spectrum.distributed_system(rowio.network(world, rows))
+    dist = spectrum.distributed_system(active.from_rows(world, rows))
     a = kpm_dos.to_record(kpm_dos.compute(world, dist, "relaxed", "auto", 2, 512))
     serial = spectrum.active_system(h5md.read_packing(path))
     b = kpm_dos.to_record(kpm_dos.compute(env.petsc().COMM_SELF, serial, "relaxed", "auto", 2,

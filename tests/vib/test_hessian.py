@@ -4,6 +4,7 @@ row-block sums, exact preallocation, and the same matrix on 1 and 2 ranks (dense
 import numpy as np
 import pytest
 
+from parjam.net.blocks import KINDS, contact_blocks
 from parjam import env
 from parjam.files import h5md
 from parjam.net import network
@@ -65,7 +66,7 @@ def test_matvec_equals_finite_difference_of_forces(packing, alpha):
     pack.alpha = alpha  # any alpha: the Hessian of the energy wherever the packing is
     c = network.find_contacts(pack)
     A = distributed(PETSc.COMM_WORLD, pack.n, pack.d, c,
-                    hessian.contact_blocks(c.rij, c.r, c.sigma, alpha, pack.eps, KIND))
+                    contact_blocks(c.rij, c.r, c.sigma, alpha, pack.eps, KIND))
     rng = np.random.default_rng(3)
     for _ in range(3):
         v = rng.normal(size=pack.pos.shape)
@@ -77,7 +78,7 @@ def test_matvec_equals_finite_difference_of_forces(packing, alpha):
     A.destroy()
 
 
-@pytest.mark.parametrize("kind", hessian.KINDS)
+@pytest.mark.parametrize("kind", KINDS)
 def test_symmetric_zero_row_sums_no_mallocs(packing, kind):
     pack, net = packing
     system = spectrum.active_system(pack, net)
@@ -104,7 +105,7 @@ def test_full_is_relaxed_plus_stress_and_matches_dense(packing):
     pack, net = packing
     system = spectrum.active_system(pack, net)
     dense = {}
-    for kind in hessian.KINDS:
+    for kind in KINDS:
         A = spectrum.dynamical_matrix(PETSc.COMM_WORLD, system, kind)
         dense[kind] = to_dense(A)
         A.destroy()

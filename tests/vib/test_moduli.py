@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 
+from parjam.net.blocks import contact_blocks
 from parjam import env
 from parjam.net import potential
 from parjam.vib import hessian, moduli
@@ -68,7 +69,7 @@ class StrainedBox:
                 break
             w, r = self.geometry(F, u)
             c = r < self.sigma
-            K = hessian.contact_blocks(w[c], r[c], self.sigma[c], self.alpha, self.eps)
+            K = contact_blocks(w[c], r[c], self.sigma[c], self.alpha, self.eps)
             H = hessian.dense_hessian(self.n, self.d, self.i[c], self.j[c], K)
             u += np.linalg.solve(H + T @ T.T, -g.ravel()).reshape(self.n, self.d)
         e, g = self.energy_gradient(F, u)

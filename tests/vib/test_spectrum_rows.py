@@ -10,7 +10,7 @@ from mpi4py import MPI
 
 from parjam import env
 from parjam.files import rowio
-from parjam.net import network
+from parjam.net import active, network
 from parjam.vib import spectrum
 from parjam.files.h5md import read_packing
 
@@ -22,7 +22,7 @@ SOFT = os.path.join(DATA, "soft_d2_N256_m0.h5")
 
 
 def test_vectors_stay_on_their_rows():
-    system = spectrum.distributed_system(rowio.network(WORLD, SOFT))
+    system = spectrum.distributed_system(active.from_rows(WORLD, rowio.read_rows(WORLD, SOFT)))
     spec = spectrum.compute(WORLD, system, "full", k=6, method="sinvert", vectors=True)
     assert np.array_equal(spec.vector_ids, system.ids)
     assert spec.vectors.shape == (len(spec.eigenvalue), len(system.ids), system.d)

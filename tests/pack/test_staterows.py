@@ -1,4 +1,4 @@
-"""A packing protocol state as each rank's rows (parjam.pack.statefile) and its file by row blocks,
+"""A packing protocol state as each rank's rows (parjam.pack.staterows) and its file by row blocks,
 against the serial network.analyze + h5md.write_packing of the whole packing: on one rank every
 dataset and attribute bit for bit; on 2 (the MPI pass) and 3 ranks (one serial test) the
 contacts, rattlers and positions exactly, the floats to round-off.  2D bidisperse (hexatic
@@ -13,7 +13,7 @@ from mpi4py import MPI
 
 from parjam.files import h5md
 from parjam.net import order
-from parjam.pack import statefile
+from parjam.pack import staterows
 from parjam.net.active import row_block
 from parjam.net.network import analyze
 
@@ -30,7 +30,7 @@ def state_rows(pack):
     """The packing's contiguous id block of this rank as StateRows (the Jammer's layout)."""
     lo, hi = row_block(pack.n, COMM)
     meta = {"species": np.asarray(pack.meta.get("species", np.zeros(pack.n)))[lo:hi]}
-    return statefile.StateRows(COMM, pack.n, pack.L, pack.alpha, pack.eps, pack.phi, lo,
+    return staterows.StateRows(COMM, pack.n, pack.L, pack.alpha, pack.eps, pack.phi, lo,
                                pack.pos[lo:hi].copy(), pack.diam[lo:hi].copy(), meta,
                                frozenset(meta))
 
@@ -48,7 +48,7 @@ def test_file_by_rows_is_the_serial_file(name, shared_tmp):
     pack = h5md.read_packing(os.path.join(DATA, name))
     rows = state_rows(pack)
     net = rows.network()
-    hexatic = statefile.hexatic_order(rows, net)
+    hexatic = staterows.hexatic_order(rows, net)
     exact = COMM.Get_size() == 1
     ref_hex = order.hexatic_order(pack)
     if pack.d == 2:
@@ -56,7 +56,7 @@ def test_file_by_rows_is_the_serial_file(name, shared_tmp):
     else:
         assert np.isnan(hexatic).all()
     new = os.path.join(shared_tmp, f"rows-{name}")
-    statefile.write(new, rows, net, PARAMS, {"ranks": 1}, dict(EXTRA, hexatic=hexatic[0]))
+    staterows.write(new, rows, net, PARAMS, {"ranks": 1}, dict(EXTRA, hexatic=hexatic[0]))
     if COMM.Get_rank() == 0:
         ref = os.path.join(shared_tmp, f"serial-{name}")
         h5md.write_packing(ref, pack, analyze(pack), PARAMS, {"ranks": 1},
@@ -80,7 +80,7 @@ def test_rows_hold_only_their_block():
     """No rank holds more than its block of the particles, nor its contacts' share."""
     pack = h5md.read_packing(os.path.join(DATA, "soft_d3_N256_m0.h5"))
     rows = state_rows(pack)
-    part = statefile.packing_rows(rows, rows.network())
+    part = staterows.packing_rows(rows, rows.network())
     lo, hi = row_block(pack.n, COMM)
     assert len(part.pos) == hi - lo
     assert np.all((part.contacts[:, 0] >= lo) & (part.contacts[:, 0] < hi))
@@ -92,5 +92,5 @@ def test_rows_hold_only_their_block():
 @pytest.mark.serial
 def test_the_same_on_three_ranks():
     """A middle rank whose id block's contacts come from slabs on both sides."""
-    res = run_on_ranks("test_statefile.py", 3)
+    res = run_on_ranks("test_staterows.py", 3)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]

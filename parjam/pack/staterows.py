@@ -1,5 +1,4 @@
-"""A minimised state of the packing protocol as each rank's rows, and its packing file written by
-row blocks (issue 18: no rank holds all N positions between FIRE and the file).
+"""A minimised state of the packing protocol as each rank's rows, and the rows of its packing file (issue 18: no rank holds all N positions between FIRE and the file).
 
 The Jammer keeps a state as the force field's block rows: rank r holds the particles with ids
 [lo, hi) of its contiguous block (``StateRows``).  Everything ``parjam pack`` writes about the
@@ -9,9 +8,10 @@ state comes from those rows:
   rattlers; bit-identical to network.analyze on one rank);
 - the hexatic order of 2D states (parjam.net.order's psi6) from the half-edges of the neighbours
   closer than 1.25 sigma_ij on the slabs, summed per particle in the serial order;
-- the file (io.write_packing's layout, docs/file-format.md) by parjam.files.rowio.write_packing_rows:
-  the rattler flags and every contact (i < j, its overlap, force and stiffness) are sent to the
-  rank whose id block holds i and sorted there into the file's (i, j) order.
+- the rows of its file (``packing_rows``: h5md.write_packing's content, docs/file-format.md, which
+  parjam.files.rowio.write_packing_rows writes): the rattler flags and every contact (i < j, its
+  overlap, force and stiffness) are sent to the rank whose id block holds i and sorted there
+  into the file's (i, j) order.
 
 ``StateRows.packing()`` still gathers the whole configuration for callers that want it (tests,
 ``make_jammed``); the protocol itself never calls it.
@@ -21,13 +21,27 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from parjam.files import rowio
 from parjam.net import potential
 from parjam.pack import jamnet
-from parjam.net.active import half_edges, max_op
+from parjam.net.active import half_edges, home_rows, max_op
 from parjam.net.domain import as_mpi
 from parjam.net.order import NEIGHBOUR_FACTOR
 from parjam.net.system import Packing
+
+
+@dataclass
+class PackingRows:
+    """One rank's consecutive rows of a packing file (rank r's follow rank r-1's): particles
+    in id order and contacts in the file's order (each contact once over all ranks)."""
+
+    pos: np.ndarray  # (n_r, d), folded into [0, L)
+    diam: np.ndarray  # (n_r,)
+    species: np.ndarray  # (n_r,) int32
+    rattler: np.ndarray  # (n_r,) bool
+    contacts: np.ndarray  # (m_r, 2) particle ids i < j
+    overlap: np.ndarray  # (m_r,) 1 - r / sigma_ij
+    force: np.ndarray  # (m_r,) |V'(r)|
+    stiffness: np.ndarray  # (m_r,) V''(r)
 
 
 @dataclass
@@ -106,7 +120,7 @@ def hexatic_order(rows, net):
 
 
 def packing_rows(rows, net):
-    """This rank's :class:`parjam.files.rowio.PackingRows` of the state's file (collective): its own
+    """This rank's :class:`PackingRows` of the state's file (collective): its own
     particles, and the contacts whose lower id it holds, in (i, j) order."""
     comm = as_mpi(rows.comm)
     st = net.state
@@ -117,25 +131,17 @@ def packing_rows(rows, net):
     force = np.linalg.norm(-(dv / c.r)[:, None] * c.rij, axis=1) if len(c) else np.zeros(0)
     values = np.column_stack([j.astype(float), potential.overlap(c.r, c.sigma), force,
                               potential.d2V(c.r, c.sigma, rows.alpha, rows.eps)])
-    home_i, got = rowio.home_rows(comm, rows.n, i, values.reshape(-1, 4))
+    home_i, got = home_rows(comm, rows.n, i, values.reshape(-1, 4))
     home_j = got[:, 0].astype(np.int64)
     order = np.lexsort((home_j, home_i))
     got = got[order]
-    rid, rattler = rowio.home_rows(comm, rows.n, st.ids, net.rattler.astype(np.int8))
+    rid, rattler = home_rows(comm, rows.n, st.ids, net.rattler.astype(np.int8))
     if not np.array_equal(rid, rows.ids):  # the id blocks of home_rows are the force field's
         raise AssertionError("parjam: state rows and file rows disagree")
     species = rows.meta.get("species")
     species = np.zeros(len(rows.x), np.int32) if species is None else np.asarray(species)
-    return rowio.PackingRows(
+    return PackingRows(
         pos=rows.x, diam=rows.diam, species=species.astype(np.int32),
         rattler=rattler.astype(bool),
         contacts=np.stack([home_i[order], home_j[order]], axis=1).reshape(-1, 2),
         overlap=got[:, 1], force=got[:, 2], stiffness=got[:, 3])
-
-
-def write(path, rows, net, parameters, prov=None, observables=None):
-    """The state's packing file, io.write_packing's layout and content, by row blocks
-    (collective; parjam.files.rowio.write_packing_rows)."""
-    obs = dict(net.summary(), stress_tensor=net.stress, **(observables or {}))
-    rowio.write_packing_rows(rows.comm, path, packing_rows(rows, net), rows.d, rows.L,
-                             rows.alpha, rows.eps, rows.phi, obs, parameters, prov)

@@ -1,4 +1,5 @@
-"""The /lengths group of ``parjam lengths --out`` (HDF5, written by one rank)."""
+"""The file of ``parjam lengths --out``: the /lengths group (HDF5, written by one rank) of a
+parjam.lengths.Lengths result."""
 
 import numpy as np
 
