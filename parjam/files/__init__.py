@@ -1,5 +1,7 @@
 """parjam's files, and no physics: H5MD packing files (:mod:`.h5md`), row-block reads and writes
 that no rank holds whole (:mod:`.rowio`), the output policy (:mod:`.outputs`), the manifest of a
-``pack`` directory (:mod:`.manifest`), checkpoint files (:mod:`.checkpointio`), spectrum files
-(:mod:`.modes_io`), and configurations made elsewhere (:mod:`.importer`).
+``pack`` directory (:mod:`.manifest`), checkpoints inside a member (:mod:`.checkpoint`, its
+files :mod:`.checkpointio`), configurations made elsewhere (:mod:`.importer`), and one module
+per result kind: spectra (:mod:`.modes_io`), soft modes (:mod:`.softmodes`), moduli
+(:mod:`.moduli`), lengths (:mod:`.lengths`), a scene stage's member (:mod:`.stagefile`).
 """

@@ -18,7 +18,7 @@ positions always, as a piece, when it ends (``finish``); the index, and with it 
 the minimisation in progress, at most every ``every`` seconds (and nothing at all with
 ``every <= 0``).  They are removed when the member's results are written.
 
-Memory (issue 18): no rank holds all N rows of anything.  Positions and velocities go from the
+Memory: no rank holds all N rows of anything.  Positions and velocities go from the
 ranks that own them (the force field's block rows; a snapshot's from the FIRE engine's slab
 rows, handed to the block rows first) to rank 0 in pieces of at most rowio.CHUNK_BYTES, which
 it writes as it receives them; on resume each rank reads its own block rows of a replayed

@@ -1,5 +1,5 @@
 """The files of a member's checkpoint (parjam.files.checkpoint), append-only and by row blocks: no rank
-holds all N positions to write or to read them (issue 18).
+holds all N positions to write or to read them.
 
 Layout (FORMAT 2), for member M of run directory DIR:
 
@@ -89,7 +89,7 @@ def write_index(path, params, generation, done, pending):
 
 
 def read_format(path):
-    """The format number of an index (1: parjam's whole-file checkpoint before issue 18)."""
+    """The format number of an index (1: parjam's earlier whole-file checkpoint)."""
     with h5py.File(path, "r") as f:
         return int(f.attrs["format"])
 

@@ -23,10 +23,9 @@ import os
 
 import h5py
 import numpy as np
-from mpi4py import MPI
 
 from parjam.files import h5md, rowio
-from parjam.net.active import home_rows, row_block
+from parjam.net.active import home_rows
 from parjam.net.domain import as_mpi
 from parjam.errors import ParjamError
 
@@ -58,25 +57,18 @@ def write_spectrum(comm, path, spec, system, rows, dos, prov):
     per-particle datasets by row blocks (parjam.files.rowio), so that no rank holds the packing's N
     rows: /particles/all from each rank's file rows ``rows`` (rowio.read_rows), the
     non-rattlers' ids from the distributed ``system`` moved to their home rows.  The
-    eigenvectors, when asked for: each rank's rows (spectrum.compute's SLEPc paths on a
-    distributed system, ``spec.vector_ids``) go to their home rows with the ids; the dense path's
-    (K, N', d) array on rank 0 (in particle-id order) is written in pieces from there."""
+    eigenvectors, when asked for: each rank's rows (``spec.vector_ids``) go to their home rows
+    with the ids."""
     mpi = as_mpi(comm)
-    own = system.ids if system.distributed else \
-        system.active[slice(*row_block(len(system.active), mpi))]
-    spread = mpi.allreduce(spec.vector_ids is not None, op=MPI.LAND)
+    want = spec.vector_ids is not None  # the same on every rank (spectrum.compute)
     k = len(spec.eigenvalue)
-    if spread:  # each rank's rows (K, n_r, d) travel with their ids, K d numbers a row
+    if want:  # each rank's rows (K, n_r, d) travel with their ids, K d numbers a row
         ids, vec = home_rows(mpi, rows.n, spec.vector_ids,
-                                   spec.vectors.transpose(1, 0, 2).reshape(
-                                       len(spec.vector_ids), k * system.d))
+                             spec.vectors.transpose(1, 0, 2).reshape(len(spec.vector_ids),
+                                                                     k * system.d))
         vectors = vec.reshape(len(ids), k, system.d).transpose(1, 0, 2)
     else:
-        ids, _ = home_rows(mpi, rows.n, own)
-    want = spread or mpi.bcast(spec.vectors is not None, root=0)
-    if want and not spread:
-        vectors = (spec.vectors if mpi.Get_rank() == 0 else
-                   np.zeros((k, 0, system.d)))
+        ids, _ = home_rows(mpi, rows.n, system.ids)
     nbytes = spectrum_bytes(rows, system, len(spec.eigenvalue) if want else 0)
     with rowio.rows_file(mpi, path, nbytes) as out:
         out.meta(write_modes, lambda: (spec, mode_attrs(spec, system, rows.path, prov.get(

@@ -1,4 +1,4 @@
-"""Packing files read by row ranges: no rank holds all N positions (issue 19).
+"""Packing files read by row ranges: no rank holds all N positions.
 
 The installed h5py is serial (no ``mpio`` driver), so every rank opens the file read-only by
 itself (independent opens; concurrent readers of one HDF5 file are safe) and reads only its

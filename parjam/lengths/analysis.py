@@ -8,11 +8,10 @@ are sent to the owners of their rows)."""
 from dataclasses import dataclass
 
 import numpy as np
-from mpi4py import MPI
 
 from parjam.vib import moduli as moduli_mod
 from parjam.vib import solver_choice, spectrum, structure
-from parjam.net.domain import send_rows
+
 from parjam.errors import ParjamError
 from parjam.lengths.lstar import LstarResult, lstar
 from parjam.lengths.sites import build as build_sites
@@ -154,37 +153,21 @@ def compute(comm, source, what=("speeds", "omega"), *, matrix="full", k=None, me
     return res
 
 
-def owned_vectors(comm, spec, ids):
-    """The eigenvector rows of this rank's non-rattlers ``ids`` (ascending): (M, len(ids), d)
-    (collective).  The SLEPc paths leave them there already (``spec.vector_ids``); the dense
-    path holds them on rank 0 ((M, N', d), rows in ascending particle id) and sends them."""
-    if comm.allreduce(spec.vector_ids is not None, op=MPI.LAND):
-        if not np.array_equal(spec.vector_ids, ids):
-            raise RuntimeError("eigenvector rows do not match the owned non-rattlers")
-        return spec.vectors
-    vectors = spec.vectors
-    shape = comm.bcast(None if vectors is None else vectors.shape[::2])
-    parts = comm.gather(ids, root=0)
-    if comm.Get_rank() == 0:
-        owner = np.repeat(np.arange(comm.Get_size()), [len(p) for p in parts])
-        order = np.argsort(np.concatenate(parts))
-        rows, dest, keys = vectors.transpose(1, 0, 2), owner[order], np.sort(np.concatenate(parts))
-    else:
-        rows = np.zeros((0,) + shape)
-        dest, keys = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    got_ids, got = send_rows(comm, dest, keys, {"v": rows})
-    if not np.array_equal(got_ids, ids):
+def owned_vectors(spec, ids):
+    """The eigenvector rows of this rank's non-rattlers ``ids``: (M, len(ids), d), where
+    parjam.vib.spectrum leaves them (``spec.vector_ids``)."""
+    if not np.array_equal(spec.vector_ids, ids):
         raise RuntimeError("eigenvector rows do not match the owned non-rattlers")
-    return got["v"].transpose(1, 0, 2)
+    return spec.vectors
 
 
 def structure_part(comm, sites, res, *, k_max, k_fit, smooth, log):
     """F_L, F_T summed over each rank's owned non-rattlers (their eigenvector rows, where
-    parjam.vib.spectrum leaves them or sent from rank 0 after a dense solve), one allreduce per block of wavevectors; the
-    result is the same on every rank."""
+    parjam.vib.spectrum leaves them), one allreduce per block of wavevectors; the result is the
+    same on every rank."""
     spec = res.spectrum
     k_fit = k_fit or 1.5 * 2.0 * np.pi / sites.L  # the two smallest shells, |m|^2 = 1, 2
-    vec = owned_vectors(comm, spec, sites.net.ids)
+    vec = owned_vectors(spec, sites.net.ids)
     spec.vectors = None
     log(f"structure factors: {len(spec.eigenvalue)} modes, k <= {k_max:.3g}")
     sf = structure.compute(vec, spec.frequency, sites.pos, sites.L, k_max, comm=comm)

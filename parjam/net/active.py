@@ -1,7 +1,7 @@
 """The one distributed active network of a packing: the contacts and non-rattlers that every
 analysis (hessian, spectrum, kpm, moduli, analyze) builds on, with O(N/P) memory per rank.
 
-Built on parjam.net.domain's slabs (issue 19):
+Built on parjam.net.domain's slabs:
 
 1. ``SlabDomain.balanced`` + ``migrate``: each rank owns the particles of its slab, whatever
    rows it started with (e.g. its row range of the packing file);

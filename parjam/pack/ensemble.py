@@ -9,8 +9,6 @@ import numpy as np
 
 from parjam.errors import UnjammedError
 from parjam.net import order
-from parjam.net.network import analyze
-from parjam.net.system import Packing
 from parjam.pack import staterows
 from parjam.pack.packing import RESOLVED_FRACTION, JamSettings, Jammer, LadderUnjammed
 from parjam.pack.randomstart import member_rng, start_rows
@@ -126,18 +124,14 @@ DPHI_VIRIAL_SQRT = 0.5
 
 
 def state_network(st):
-    """The contact network of a State: on the slabs from its rows (parjam.pack.staterows, collective),
-    serially (network.analyze) for a State made from a whole Packing."""
-    if isinstance(st.rows, Packing):
-        return analyze(st.rows)
+    """The contact network of a State, on the slabs from its rows (parjam.pack.staterows;
+    collective)."""
     return st.rows.network()
 
 
 def state_hexatic(st, net):
-    """(local, global) hexatic order of a State (parjam.net.order), from its rows where it has
-    them (collective)."""
-    if isinstance(st.rows, Packing):
-        return order.hexatic_order(st.rows)
+    """(local, global) hexatic order of a State (parjam.net.order's), from its rows
+    (collective)."""
     return staterows.hexatic_order(st.rows, net)
 
 

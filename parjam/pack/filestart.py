@@ -1,4 +1,4 @@
-"""The start of ``parjam pack --from FILE`` by rows (issue 18): no rank reads or holds all N
+"""The start of ``parjam pack --from FILE`` by rows: no rank reads or holds all N
 particles of the file.
 
 Every rank holds only its contiguous block of rows of the file (read and validated by

@@ -19,7 +19,7 @@ recorded with every state.  Every returned state is also checked to be a stable 
 minimised again, or else taken through a compression cycle (``stabilise``).  A ladder step that
 unjams ends the ladder with ``LadderUnjammed``, which carries the jammed states made before it.
 
-On the decomposition (issue 18): the Jammer holds the state in its force field's PETSc block
+On the decomposition: the Jammer holds the state in its force field's PETSc block
 rows (positions, diameters, species of this rank's rows; box and constants), never all N of
 them, and starts from them (parjam.pack.randomstart.start_rows makes a random start's rows; a whole
 Packing is cut into them).  Every per-state number comes from parjam.pack.jamnet on the slabs
@@ -50,7 +50,7 @@ from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENE
                              DEFAULT_FTOL, DEFAULT_PHI_START, DEFAULT_RATIO)
 # the random start lives in parjam.pack.randomstart; these names stay importable from here
 from parjam.pack.randomstart import DISPERSITIES, member_rng, random_packing, start_rows
-from parjam.net.system import Packing, sphere_volume, wrap
+from parjam.net.system import sphere_volume, wrap
 
 PHI_MAX = {2: 0.99, 3: 0.9}  # the phi_c search gives up above these (nothing jams so late)
 # phi_c refinement: each step decompresses to 1/REFINE_RATIO of the estimated distance to phi_c
@@ -109,20 +109,17 @@ class JamSettings:
 
 @dataclass
 class State:
-    """One minimised state of a configuration: this rank's rows of it (parjam.pack.staterows), or a
-    whole Packing where a caller made one (tests)."""
+    """One minimised state of a configuration: this rank's rows of it (parjam.pack.staterows)."""
 
-    rows: object  # staterows.StateRows, or a system.Packing
+    rows: StateRows
     result: minimize.MinResult
     label: str
     info: dict = field(default_factory=dict)
 
     @property
     def pack(self):
-        """The whole configuration on every rank (collective where the State holds rows: a
-        gather; the protocol and ``parjam pack``'s files never ask for it)."""
-        if isinstance(self.rows, Packing):
-            return self.rows
+        """The whole configuration on every rank (collective: a gather; the protocol and
+        ``parjam pack``'s files never ask for it)."""
         return self.rows.packing()
 
     @property

@@ -1,6 +1,6 @@
 """The random (infinite-temperature) start of a packing: uniform positions at a volume fraction,
 the diameters of a dispersity, the particles numbered cell by cell; made by row blocks, so that
-for a member shared by P ranks no rank holds an array of length N (issue 18).
+for a member shared by P ranks no rank holds an array of length N.
 
 The configuration is the serial one bitwise on any number of ranks:
 

@@ -1,4 +1,5 @@
-"""A minimised state of the packing protocol as each rank's rows, and the rows of its packing file (issue 18: no rank holds all N positions between FIRE and the file).
+"""A minimised state of the packing protocol as each rank's rows, and the rows of its packing
+file: no rank holds all N positions between FIRE and the file.
 
 The Jammer keeps a state as the force field's block rows: rank r holds the particles with ids
 [lo, hi) of its contiguous block (``StateRows``).  Everything ``parjam pack`` writes about the

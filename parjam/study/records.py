@@ -7,7 +7,7 @@ there, in particle-id order."""
 import numpy as np
 
 from parjam.net import active
-from parjam.vib import kpm, kpm_dos, moduli, observables, spectrum
+from parjam.vib import dense, kpm, kpm_dos, moduli, observables, spectrum
 from parjam import softmodes as sm
 from parjam.errors import ParjamError
 
@@ -27,16 +27,15 @@ def network_record(comm, rows, net=None):
 def dense_eigenvalues(comm, system, kind):
     """All eigenvalues of one matrix without eigenvectors (LAPACK eigvalsh of the deflated dense
     matrix, parjam.vib.spectrum's dense reference without its vectors): rank 0 computes, all get
-    (a distributed system is gathered there first: the dense path is for small N)."""
+    (the system is gathered there first: the dense path is for small N)."""
     mpi = comm.tompi4py()
     res = None
-    if system.distributed:
-        system = system.gathered(comm)
+    whole = system.gathered(comm)
     if mpi.Get_rank() == 0:
-        H = spectrum.dense_matrix(system, kind)
+        H = dense.dense_matrix(whole, kind)
         norm = float(np.abs(H).sum(axis=1).max())
-        lam, _ = spectrum.dense_eigh(spectrum.deflated_dense(H, system.n, system.d, norm),
-                                     k=system.n_modes, vectors=False)
+        lam, _ = dense.dense_eigh(dense.deflated_dense(H, whole.n, whole.d, norm),
+                                  k=whole.n_modes, vectors=False)
         res = (lam, norm)
     return mpi.bcast(res, root=0)
 

@@ -1,1 +1,3 @@
-"""Test-suite helpers: running pytest on every MPI rank."""
+"""Test-suite helpers: pytest on every MPI rank (:mod:`.mpi_pytest`), dense references built
+independently of the distributed path (:mod:`.reference`, :mod:`.softmodes_reference`),
+whole-configuration gathers (:mod:`.gather`) and file comparisons (:mod:`.h5compare`)."""

@@ -1,6 +1,6 @@
 """Whole-configuration copies of a force field's distributed values (parjam.pack.forces.ForceField),
 for tests and benchmark scripts only.  The packing path of parjam proper holds no array of
-length N on any rank (issue 18): its files and checkpoints go by rows, so these gathers live
+length N on any rank: its files and checkpoints go by rows, so these gathers live
 here, outside it.  Each call builds its scatter to all ranks and frees it before returning (no
 (N, d) buffer stays with the force field)."""
 

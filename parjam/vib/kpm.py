@@ -32,7 +32,7 @@ Probe vectors depend only on (seed, probe index) and the particle, never on the 
 the numbering of the rows: entry (particle p, component a) is number p d + a of a vector
 generated in fixed chunks of CHUNK entries, each from its own
 ``numpy.random.SeedSequence([seed, 0, probe, chunk])``; each rank generates only the chunks
-holding its particles (the keys ``ActiveSystem.particle_keys`` gives).  1 and 2 ranks therefore
+holding its particles (the keys are the particle ids of its rows, ``ActiveSystem.ids``).  1 and 2 ranks therefore
 give the same moments up to the round-off of the parallel sums, with the serial re-index and
 with the slab numbering of parjam.net.active alike.
 
@@ -429,7 +429,7 @@ def compute(comm, system, kind="full", n_moments=256, n_probes=16, seed=0,
     try:
         return moments(A, system.d, system.n_modes, kind, n_moments, n_probes, seed=seed,
                        probe_kind=probe_kind, bounds=bounds, progress=progress,
-                       keys=system.particle_keys(comm))
+                       keys=system.ids)
     finally:
         A.destroy()
 

@@ -94,7 +94,7 @@ def compute(comm, system, kind, moments, probes, max_moments, progress=None):
     A = spectrum.dynamical_matrix(comm, system, kind, fmt="aij")
     try:
         return adaptive(A, system.d, system.n_modes, kind, moments, probes, max_moments,
-                        keys=system.particle_keys(comm), progress=progress)
+                        keys=system.ids, progress=progress)
     finally:
         A.destroy()
 

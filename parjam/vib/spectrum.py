@@ -21,11 +21,10 @@ SLEPc/PETSc objects use the options prefix ``modes_`` (``-modes_eps_view``,
 ``-modes_st_mat_mumps_icntl_7 5``, ``-modes_eps_krylovschur_partitions 2`` ...).
 The choice of method for ``auto`` is parjam.vib.solver_choice's.
 
-Why one file of ~690 lines: the three methods return the same :class:`Spectrum` with the same
+Why one file of ~600 lines: the three methods return the same :class:`Spectrum` with the same
 checks (residuals, zero cluster, inertia counts) and are tested against each other; the system
-(replicated or distributed, parjam.net.active), the dense reference, the SLEPc set-up and the
-collection of pairs are its sections.  The system section is the next to move out (to its own
-module) once the callers outside (softmodes, lengths, study, scripts) can follow.
+(this rank's share of parjam.net.active), the dense path (its linear algebra in
+parjam.vib.dense), the SLEPc set-up and the collection of pairs are its sections.
 """
 
 import copy
@@ -33,13 +32,14 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 
-from parjam.net.blocks import KINDS, contact_blocks
 from parjam import env
-from parjam.net import network
-from parjam.vib import factor, hessian, observables, solver_choice, translations
 from parjam.errors import ParjamError, UnjammedError
+from parjam.net import active
+from parjam.net.blocks import KINDS, contact_blocks
+from parjam.vib import factor, hessian, observables, solver_choice, translations
+from parjam.vib.dense import (DenseSystem, count_below_dense, deflated_dense, dense_eigh,
+                              dense_matrix)
 
 METHODS = ("auto", "dense", "sinvert", "slice")
 MATRICES = KINDS
@@ -51,17 +51,13 @@ PREFIX = "modes_"
 # --- the system: non-rattlers re-indexed 0..N'-1 ---------------------------------------------------
 @dataclass
 class ActiveSystem:
-    """Non-rattlers of a packing (N' of them, re-indexed) and the contacts among them.
-
-    Two layouts of the same thing: ``rows`` None, every contact once on every rank (i < j, the
-    serial re-index ``network.active_index``: small systems, dense references); ``rows`` =
-    (lo, hi), this rank's half-edges of parjam.net.active (i owned in [lo, hi), every contact once
-    per end, the parallel re-index) and ``ids`` the particle ids of the owned rows."""
+    """This rank's share of the non-rattlers of a packing (N' of them, numbered 0..N'-1 by
+    parjam.net.active) and their contacts: the owned rows ``rows`` = (lo, hi), the particle ids
+    ``ids`` of those rows, and the half-edges (i owned in [lo, hi), j any; every contact once
+    per end).  One rank is P = 1 of the same layout."""
 
     n: int
     d: int
-    active: np.ndarray  # original indices of the non-rattlers (replicated layout; rank 0 after
-    # gather_active in the distributed one)
     i: np.ndarray
     j: np.ndarray
     rij: np.ndarray
@@ -73,14 +69,9 @@ class ActiveSystem:
     n_iso: int
     pressure: float
     max_force: float
-    rows: tuple = None
-    ids: np.ndarray = None
-    nc_global: int = -1  # Nc of the distributed layout (the half-edges are this rank's)
-
-    @property
-    def n_contacts(self):
-        """Nc, the contacts among the non-rattlers."""
-        return len(self.r) if self.rows is None else self.nc_global
+    rows: tuple
+    ids: np.ndarray
+    n_contacts: int  # Nc over all ranks (the half-edges are this rank's)
 
     @property
     def dof(self):
@@ -91,48 +82,35 @@ class ActiveSystem:
         """Non-translational modes: d N' - d."""
         return observables.n_modes_total(self.n, self.d)
 
-    @property
-    def distributed(self):
-        return self.rows is not None
-
     def blocks(self, kind):
-        """Per-contact (or per-half-edge) blocks K_ij of Eq. (1)."""
+        """Per-half-edge blocks K_ij of Eq. (1)."""
         return contact_blocks(self.rij, self.r, self.sigma, self.alpha, self.eps, kind)
 
-    def particle_keys(self, comm):
-        """Particle id of each of this rank's operator rows (rank-count independent keys)."""
-        if self.distributed:
-            return self.ids
-        lo, hi = hessian.row_range(self.n, comm)
-        return self.active[lo:hi]
-
-    def gather_active(self, comm):
-        """Collective: on rank 0 the particle ids in active-number order (None elsewhere);
-        sets ``active`` there to the sorted ids, the order vectors are written in."""
-        if not self.distributed:
-            return self.active
+    def gather_ids(self, comm):
+        """Collective: on rank 0 the particle ids of every row in active-number order (None
+        elsewhere)."""
         got = comm.tompi4py().gather(self.ids, root=0)
-        if got is None:
-            return None
-        ids = np.concatenate(got)
-        self.active = np.sort(ids)
-        return ids
+        return None if got is None else np.concatenate(got)
 
     def gathered(self, comm):
-        """Collective: the replicated layout of a distributed system on rank 0 (in its active
-        numbering; None elsewhere): every contact once, i < j.  Small systems only."""
-        mpi = comm.tompi4py()
+        """Collective: the whole system on rank 0 (None elsewhere) as a dense.DenseSystem, rows
+        in ascending particle id and every contact once (i < j): the dense path's input, for
+        small systems only."""
         up = self.i < self.j
-        parts = mpi.gather((self.i[up], self.j[up], self.rij[up], self.r[up], self.sigma[up]),
-                           root=0)
-        ids = self.gather_active(comm)
+        parts = comm.tompi4py().gather((self.i[up], self.j[up], self.rij[up], self.r[up],
+                                        self.sigma[up]), root=0)
+        ids = self.gather_ids(comm)
         if parts is None:
             return None
-        cat = [np.concatenate(col) for col in zip(*parts)]
-        return ActiveSystem(
-            n=self.n, d=self.d, active=ids, i=cat[0], j=cat[1], rij=cat[2], r=cat[3],
-            sigma=cat[4], alpha=self.alpha, eps=self.eps, n_rattlers=self.n_rattlers,
-            n_iso=self.n_iso, pressure=self.pressure, max_force=self.max_force)
+        i, j, rij, r, sigma = (np.concatenate(col) for col in zip(*parts))
+        order = np.argsort(ids)  # active number -> rank in particle-id order
+        rank = np.argsort(order)
+        i, j = rank[i], rank[j]
+        flip = i > j
+        i, j = np.where(flip, j, i), np.where(flip, i, j)
+        rij = np.where(flip[:, None], -rij, rij)
+        return DenseSystem(n=self.n, d=self.d, ids=ids[order], i=i, j=j, rij=rij, r=r,
+                           sigma=sigma, alpha=self.alpha, eps=self.eps)
 
 
 def check_vibrates(n, d, n_all_contacts, n_active, n_contacts, n_iso):
@@ -149,18 +127,10 @@ def check_vibrates(n, d, n_all_contacts, n_active, n_contacts, n_iso):
                             f"floppy mode(s) beyond the {d} translations")
 
 
-def active_system(pack, net=None):
-    """The non-rattler system of a packing, replicated on every rank (the serial network);
-    ParjamError/UnjammedError if it cannot vibrate."""
-    net = net if net is not None else network.analyze(pack)
-    check_vibrates(pack.n, pack.d, len(net.all_contacts), net.n_active, net.n_contacts,
-                   net.n_iso)
-    c = network.active_contacts(net)
-    return ActiveSystem(
-        n=net.n_active, d=pack.d, active=np.flatnonzero(~net.rattler), i=c.i, j=c.j,
-        rij=c.rij, r=c.r, sigma=c.sigma, alpha=pack.alpha, eps=pack.eps,
-        n_rattlers=net.n_rattlers, n_iso=net.n_iso, pressure=net.pressure,
-        max_force=net.max_force)
+def system_of(comm, pack):
+    """The non-rattler system of a packing every rank of ``comm`` holds (tests, small systems):
+    each rank starts from its row block of the packing, as if it had read only that."""
+    return distributed_system(active.from_packing(comm, pack))
 
 
 def distributed_system(net):
@@ -169,10 +139,10 @@ def distributed_system(net):
     check_vibrates(net.n, net.d, net.n_all_contacts, net.n_active, net.n_contacts, net.n_iso)
     c = net.contacts
     return ActiveSystem(
-        n=net.n_active, d=net.d, active=None, i=c.i, j=c.j, rij=c.rij, r=c.r, sigma=c.sigma,
+        n=net.n_active, d=net.d, i=c.i, j=c.j, rij=c.rij, r=c.r, sigma=c.sigma,
         alpha=net.alpha, eps=net.eps, n_rattlers=net.n_rattlers, n_iso=net.n_iso,
         pressure=net.pressure, max_force=net.max_force, rows=net.rows, ids=net.ids,
-        nc_global=net.n_contacts)
+        n_contacts=net.n_contacts)
 
 
 def build_matrix(comm, system, blocks, fmt="aij"):
@@ -208,8 +178,8 @@ class Spectrum:
     n_unstable: int = -1  # eigenvalues below -zero_tol (inertia; -1 if not known)
     rejected_eigenvalue: np.ndarray = field(default_factory=lambda: np.zeros(0))
     rejected_error: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    vectors: np.ndarray = None  # (K, N', d) on rank 0 when asked for; on a distributed
-    # system's SLEPc paths (K, n_rows, d): this rank's active rows, particle ids ``vector_ids``
+    vectors: np.ndarray = None  # (K, n_rows, d) when asked for: this rank's active rows,
+    # particle ids ``vector_ids``
     vector_ids: np.ndarray = None
     info: dict = field(default_factory=dict)
     seconds: float = 0.0
@@ -328,11 +298,9 @@ def compute(comm, system, kind="full", *, k=None, window=None, method="auto", to
 
 def vectors_on_root(comm, spec):
     """A spectrum's eigenvectors (K, N', d) on rank 0 of ``comm`` in particle-id order, from
-    wherever ``compute`` left them (each rank's rows with ``vector_ids``, or rank 0); None
-    elsewhere (collective; a gather of K d N' numbers: for records and tests, not for files)."""
+    each rank's rows (``vector_ids``); None elsewhere (collective; a gather of K d N' numbers:
+    for records and tests, not for files)."""
     mpi = comm.tompi4py()
-    if not all(mpi.allgather(spec.vector_ids is not None)):
-        return spec.vectors if mpi.Get_rank() == 0 else None
     ids = mpi.gather(spec.vector_ids, root=0)
     rows = mpi.gather(spec.vectors.transpose(1, 0, 2), root=0)
     if mpi.Get_rank() != 0:
@@ -340,64 +308,51 @@ def vectors_on_root(comm, spec):
     return np.concatenate(rows)[np.argsort(np.concatenate(ids))].transpose(1, 0, 2)
 
 
-# --- dense reference ---------------------------------------------------------------------------
-def dense_matrix(system, kind):
-    return hessian.dense_hessian(system.n, system.d, system.i, system.j, system.blocks(kind))
-
-
-def deflated_dense(H, n, d, norm):
-    """H + c T T^T with T the normalised translations and c = 2 ||H||_inf (above the spectrum):
-    the translations (exact null vectors) move to c, every other eigenpair is unchanged, so the
-    lowest d n - d eigenpairs are those of the deflated matrix (Hotelling deflation, O(n^2))."""
-    Hs = H.copy().reshape(n, d, n, d)
-    for a in range(d):
-        Hs[:, a, :, a] += 2.0 * norm / n
-    return Hs.reshape(n * d, n * d)
-
-
-def dense_eigh(Hdefl, k=None, interval=None, vectors=True):
-    """The k lowest eigenpairs of a deflated dense matrix, or those in a lambda interval."""
-    kw = {"subset_by_index": [0, k - 1]} if k is not None else {"subset_by_value": interval}
-    if not vectors:
-        return scipy.linalg.eigh(Hdefl, eigvals_only=True, **kw), None
-    return scipy.linalg.eigh(Hdefl, **kw)
-
-
-def count_below_dense(Hd, sigma):
-    """Eigenvalues of the symmetric Hd below sigma, from the inertia of an LDL^T factorisation
-    (Sylvester): no eigen-decomposition needed."""
-    _, D, _ = scipy.linalg.ldl(Hd - sigma * np.eye(len(Hd)))
-    diag, off = np.diag(D).copy(), np.diag(D, 1).copy()
-    return int(np.sum(scipy.linalg.eigvalsh_tridiagonal(diag, off) < 0))
-
-
+# --- dense LAPACK (parjam.vib.dense) ------------------------------------------------------------
 def dense_modes(comm, system, kind, *, k, window, tol, want_vectors):
-    """The dense reference path: computed on rank 0 of ``comm`` and broadcast (without vectors:
-    only rank 0 returns them)."""
+    """The dense path (parjam.vib.dense): the system gathered and solved on rank 0 of ``comm``,
+    the spectrum broadcast and the eigenvectors, when asked for, sent back to the ranks that own
+    their rows (each rank's (K, rows, d) with ``vector_ids``, as the SLEPc paths leave them)."""
     mpi = comm.tompi4py()
     spec, message = None, None
-    if system.distributed:
-        system = system.gathered(comm)
-        if system is not None:  # rows in the order of the particle ids (the file's)
-            order = np.argsort(system.active)
-            system.i, system.j = np.argsort(order)[system.i], np.argsort(order)[system.j]
-            system.active = system.active[order]
+    whole = system.gathered(comm)  # rows in ascending particle id (the file's order)
     if mpi.Get_rank() == 0:
         try:
-            spec = _dense_on_rank0(system, kind, k, window, tol, want_vectors)
+            spec = _dense_on_rank0(whole, kind, k, window, tol, want_vectors)
         except ParjamError as exc:
             message = str(exc)
     message = mpi.bcast(message)
     if message:
         raise ParjamError(message)
-    if mpi.Get_size() == 1:
-        return spec
-    light = None
+    vectors = spec.vectors if spec is not None else None
+    if spec is not None:
+        spec = copy.copy(spec)
+        spec.vectors = None
+    spec = mpi.bcast(spec) if mpi.Get_size() > 1 else spec
+    if want_vectors:
+        spec.vectors = owned_rows(mpi, whole, vectors, system.ids)
+        spec.vector_ids = np.asarray(system.ids)
+    return spec
+
+
+def owned_rows(mpi, whole, vectors, ids):
+    """Each rank's rows (K, len(ids), d) of the (K, N', d) ``vectors`` rank 0 holds in the order
+    of ``whole.ids`` (collective: rank 0 sends every rank its rows, one rank at a time)."""
+    wanted = mpi.gather(np.asarray(ids), root=0)
+    mine = None
     if mpi.Get_rank() == 0:
-        light = copy.copy(spec)
-        light.vectors = None
-    light = mpi.bcast(light)
-    return spec if mpi.Get_rank() == 0 else light
+        for r, want in enumerate(wanted):
+            block = np.ascontiguousarray(vectors[:, np.searchsorted(whole.ids, want), :])
+            if r == 0:
+                mine = block
+            else:
+                mpi.send(block, dest=r, tag=OWNED_TAG)
+    else:
+        mine = mpi.recv(source=0, tag=OWNED_TAG)
+    return mine
+
+
+OWNED_TAG = 7302  # point-to-point tag of the eigenvector rows sent back to their owners
 
 
 def _dense_on_rank0(system, kind, k, window, tol, want_vectors):
@@ -643,8 +598,8 @@ class _ModeObservables:
 
 
 def _collect(comm, eps, A, system, *, kind, method, n_wanted, tol, norm, want_vectors, log):
-    """Accepted pairs (true residual <= tol), their observables and vectors: on a distributed
-    system each rank keeps its own rows (no rank holds all N'), else rank 0 all of them."""
+    """Accepted pairs (true residual <= tol), their observables and vectors: each rank keeps
+    its own rows (no rank holds all N')."""
     PETSc = env.petsc()
     SLEPc = env.slepc()
     stage = PETSc.Log.Stage("modes: observables")
@@ -653,40 +608,28 @@ def _collect(comm, eps, A, system, *, kind, method, n_wanted, tol, norm, want_ve
     take = min(nconv, n_wanted)
     obs = _ModeObservables(comm, system)
     v = A.createVecRight()
-    own_rows = want_vectors and system.distributed
-    scatter, v0 = (PETSc.Scatter.toZero(v) if want_vectors and not own_rows
-                   else (None, None))
     rows = []
     vecs = []
     for idx in range(take):
         lam = eps.getEigenpair(idx, v).real
         err = eps.computeError(idx, SLEPc.EPS.ErrorType.ABSOLUTE) / norm
         rows.append((lam, err) + tuple(obs(v)))
-        if own_rows:
+        if want_vectors:  # this rank's rows only
             vecs.append(v.getArray(readonly=True).copy())
-        elif want_vectors:
-            scatter.scatter(v, v0, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
-            if comm.getRank() == 0:
-                vecs.append(v0.getArray(readonly=True).copy())
     obs.destroy()
     v.destroy()
-    if scatter is not None:
-        scatter.destroy()
-        v0.destroy()
     stage.pop()
     table = np.array(rows, dtype=float).reshape(-1, 5)
     order = np.argsort(table[:, 0], kind="stable")
     table = table[order]
     ok = table[:, 1] <= tol
     vectors = None
-    if own_rows:
+    if want_vectors:
         vectors = np.array(vecs).reshape(len(vecs), len(system.ids), system.d)[order][ok]
-    elif want_vectors and comm.getRank() == 0:
-        vectors = np.array(vecs).reshape(-1, system.n, system.d)[order][ok]
     log(f"{method}: {nconv} converged, {int(ok.sum())} accepted of {n_wanted} wanted")
     return Spectrum(
         eigenvalue=table[ok, 0], error=table[ok, 1], participation_ratio=table[ok, 2],
         eps_perp=table[ok, 3], eps_par=table[ok, 4], matrix=kind, method=method, tolerance=tol,
         norm=norm, n_requested=n_wanted, rejected_eigenvalue=table[~ok, 0],
         rejected_error=table[~ok, 1], vectors=vectors,
-        vector_ids=np.asarray(system.ids) if own_rows else None)
+        vector_ids=np.asarray(system.ids) if want_vectors else None)

@@ -14,7 +14,8 @@ from mpi4py import MPI
 from parjam import cli
 from parjam.files import h5md
 from parjam.net import network
-from parjam.vib import spectrum
+from parjam.testing.reference import dense_system
+from parjam.vib.dense import dense_matrix
 
 from conftest import DATA
 
@@ -42,7 +43,7 @@ def test_modes_file_by_rows(shared_tmp, monkeypatch, path, method):
     path = with_species(shared_tmp) if path == "species" else path
     pack = h5md.read_packing(path)  # the reference, before reading the whole file is forbidden
     net = network.analyze(pack)
-    system = spectrum.active_system(pack, net)
+    system = dense_system(pack, net)
     out = os.path.join(shared_tmp, f"rows-{method}-{os.path.basename(path)}")
 
     def whole(*args, **kw):
@@ -69,7 +70,7 @@ def test_modes_file_by_rows(shared_tmp, monkeypatch, path, method):
         assert active.dtype == np.int64 and np.array_equal(active, np.flatnonzero(~net.rattler))
         lam, vec = f["modes/eigenvalue"][()], f["modes/eigenvector"][()]
     assert vec.shape == (8, system.n, pack.d)
-    H = spectrum.dense_matrix(system, "full")
+    H = dense_matrix(system, "full")
     norm = np.abs(H).sum(axis=1).max()
     for k in range(8):  # rows in particle-id order: an eigenvector of D in the serial numbering
         v = vec[k].ravel()

@@ -1,7 +1,7 @@
 """The distributed active network (parjam.net.active) against the serial network.analyze: the same
 contacts, rattlers, N', Nc, z, pressure and forces on 1 and 2 ranks (the MPI pass) and, through
 one serial test, on 3; 2D bidisperse and 3D monodisperse packings of tests/data.  The operators
-assembled from its half-edges (AIJ and SBAIJ) equal the replicated assembly, their eigenvalues
+assembled from its half-edges (AIJ and SBAIJ) equal the dense reference matrix, their eigenvalues
 the dense LAPACK references to 1e-8, and no solver leaves options in PETSc's database."""
 
 import os
@@ -15,6 +15,8 @@ from parjam.net import active
 from parjam.vib import kpm, moduli, spectrum
 from parjam.files.h5md import read_packing
 from parjam.net.network import analyze
+from parjam.testing.reference import dense_system
+from parjam.vib.dense import dense_matrix
 
 from conftest import DATA, run_on_ranks
 
@@ -105,7 +107,7 @@ def test_unjammed_every_particle_a_rattler():
 def keyed_product(A, system, seed=3):
     """A x for x with entry (particle p, component a) fixed by (p, a): {p: (A x)_p} over all
     ranks, comparable between numberings."""
-    keys = system.particle_keys(WORLD)
+    keys = system.ids
     x = A.createVecRight()
     kpm.fill_probe(x, seed, 0, "gaussian", keys=keys)
     y = A.createVecLeft()
@@ -119,21 +121,25 @@ def keyed_product(A, system, seed=3):
 
 @pytest.mark.parametrize("name", PACKINGS[:2])
 @pytest.mark.parametrize("fmt", ["aij", "sbaij"])
-def test_assembly_equals_the_replicated_one(name, fmt):
-    """The matrix from half-edges (slab rows) is the replicated matrix (PETSc's row split) up to
+def test_assembly_equals_the_dense_reference(name, fmt):
+    """The matrix from half-edges (slab rows) is the dense matrix of the serial network up to
     the numbering, in either format, preallocated exactly (no mallocs)."""
     pack = read_packing(os.path.join(DATA, name))
-    old = spectrum.active_system(pack)
+    ref = dense_system(pack)
     new = spectrum.distributed_system(active.from_packing(COMM, pack))
-    A_old = spectrum.dynamical_matrix(WORLD, old, "full")
     A_new = spectrum.dynamical_matrix(WORLD, new, "full", fmt=fmt)
     assert A_new.getType().endswith(fmt) and A_new.getBlockSize() == pack.d
     assert A_new.getInfo()["mallocs"] == 0
-    want, got = keyed_product(A_old, old), keyed_product(A_new, new)
+    got = keyed_product(A_new, new)
+    x = env.petsc().Vec().createSeq(ref.n * ref.d, comm=env.petsc().COMM_SELF)
+    kpm.fill_probe(x, 3, 0, "gaussian", keys=ref.ids)  # the same probe, keyed by particle
+    H = dense_matrix(ref, "full")
+    y = (H @ x.getArray()).reshape(ref.n, ref.d)
+    x.destroy()
+    want = {int(p): row for p, row in zip(ref.ids, y)}
     assert sorted(want) == sorted(got)
-    scale = A_old.norm(env.petsc().NormType.INFINITY)
+    scale = np.abs(H).sum(axis=1).max()
     assert max(np.abs(want[k] - got[k]).max() for k in want) <= 1e-13 * scale
-    A_old.destroy()
     A_new.destroy()
 
 
@@ -154,13 +160,16 @@ def test_distributed_eigenvalues_equal_dense_lapack(name):
     assert np.all(np.abs(sl.eigenvalue / ref[lo:hi + 1] - 1) <= 1e-8)
     dense = spectrum.compute(WORLD, s, "full", k=s.n_modes, method="dense", vectors=True)
     assert np.abs(dense.eigenvalue - ref[d:]).max() <= 1e-12 * dense.norm
-    serial = spectrum.compute(WORLD, spectrum.active_system(pack), "full", k=3,
+    self_comm = env.petsc().COMM_SELF
+    serial = spectrum.compute(self_comm, spectrum.system_of(self_comm, pack), "full", k=3,
                               method="dense", vectors=True)
     rows = spec.vectors  # each rank's own rows (no rank holds all N')
     assert rows.shape == (len(spec.eigenvalue), len(s.ids), d)
     whole = spectrum.vectors_on_root(WORLD, spec)
+    dense_whole = spectrum.vectors_on_root(WORLD, dense)
+    serial_whole = spectrum.vectors_on_root(self_comm, serial)
     if COMM.rank == 0:  # vectors in the particle order of the file, as the serial ones
-        for u, v, w in zip(dense.vectors[:3], serial.vectors, whole):
+        for u, v, w in zip(dense_whole[:3], serial_whole, whole):
             assert abs(abs(np.vdot(u.ravel(), v.ravel())) - 1.0) < 1e-8
             assert abs(abs(np.vdot(w.ravel(), v.ravel())) - 1.0) < 1e-8
 

@@ -69,17 +69,19 @@ def test_same_command_twice_gives_the_same_files(shared_tmp):
 
 
 @pytest.fixture(scope="module")
-def system():
-    return spectrum.active_system(read_packing(REF))
+def pack():
+    return read_packing(REF)
 
 
 @pytest.mark.parametrize("method,request_", [("sinvert", {"k": 12}),
                                              ("slice", {"window": (0.05, 0.25)})])
-def test_spectrum_on_one_rank_equals_all_ranks(system, method, request_):
+def test_spectrum_on_one_rank_equals_all_ranks(pack, method, request_):
     """The distributed matrix and eigensolver on all ranks against one rank: eigenvalues to
     relative 1e-10, the same count (slicing: from the inertia), residuals below tolerance."""
-    one = spectrum.compute(PETSc.COMM_SELF, system, "full", method=method, **request_)
-    many = spectrum.compute(PETSc.COMM_WORLD, system, "full", method=method, **request_)
+    one = spectrum.compute(PETSc.COMM_SELF, spectrum.system_of(PETSc.COMM_SELF, pack), "full",
+                           method=method, **request_)
+    many = spectrum.compute(PETSc.COMM_WORLD, spectrum.system_of(PETSc.COMM_WORLD, pack),
+                            "full", method=method, **request_)
     assert len(one.eigenvalue) == len(many.eigenvalue) == one.n_requested > 0
     assert np.allclose(one.eigenvalue, many.eigenvalue, rtol=1e-10, atol=1e-12 * one.norm)
     assert one.complete and many.complete

@@ -263,9 +263,11 @@ def test_virial_dphi_disagreeing_with_the_label_is_flagged(ladder, capsys):
     from parjam.study import members
 
     d, (phi_c, packs) = ladder
-    states = [packing.State(p, MinResult("converged", 0.0, 0.0), f"dphi{dphi:.1e}",
-                            {"phi_c": phi_c}) for dphi, p in zip(DPHIS, packs)]
-    off = packing.State(packs[-1], MinResult("converged", 0.0, 0.0), "dphi1.0e-04",
+    self_comm = env.petsc().COMM_SELF
+    states = [packing.State(packing.block_rows(self_comm, p), MinResult("converged", 0.0, 0.0),
+                            f"dphi{dphi:.1e}", {"phi_c": phi_c}) for dphi, p in zip(DPHIS, packs)]
+    off = packing.State(packing.block_rows(self_comm, packs[-1]),
+                        MinResult("converged", 0.0, 0.0), "dphi1.0e-04",
                         {"phi_c": packs[-1].phi - 1e-4})
     ensemble.virial_flags(states + [off])
     for dphi, st in zip(DPHIS, states):

@@ -7,6 +7,8 @@ import os
 import numpy as np
 import pytest
 
+from parjam.testing.reference import dense_system
+from parjam.vib.dense import dense_matrix
 from parjam import cli
 from parjam.vib import spectrum
 from parjam.commands import pack as pack_command
@@ -241,7 +243,7 @@ trans = { at = [1e-3] }
 
 def test_tiny_scene_matches_the_library(shared_tmp, world):
     from parjam.net import network
-    from parjam.vib import observables, spectrum
+    from parjam.vib import observables
     from parjam.pack.packing import make_jammed
 
     out = os.path.join(shared_tmp, "tiny")
@@ -257,9 +259,9 @@ def test_tiny_scene_matches_the_library(shared_tmp, world):
             assert got["phi_c"][member] == pytest.approx(phi_c, rel=1e-12)
             assert got["dz"][member] == pytest.approx(net.dz, abs=1e-12)
             assert got["pressure"][member] == pytest.approx(net.pressure, rel=1e-8)
-            system = spectrum.active_system(pack, net)
+            system = dense_system(pack, net)
             for kind in ("full", "relaxed"):
-                lam = np.linalg.eigvalsh(spectrum.dense_matrix(system, kind))[system.d:]
+                lam = np.linalg.eigvalsh(dense_matrix(system, kind))[system.d:]
                 spec = summary[label]["spectrum"][kind]
                 mine = spec["frequency"][spec["member_of_mode"] == member]
                 np.testing.assert_allclose(mine, observables.frequency(lam),
@@ -369,7 +371,7 @@ def test_small_hertz_scene_exponents(shared_tmp, world):
 def test_lowest_modes_and_window_use_slepc(shared_tmp, world):
     """k lowest modes by shift-and-invert (vectors stored) and a window by slicing, as the plan
     says when dense is not allowed, equal the dense eigenvalues of the same packing."""
-    from parjam.vib import observables, spectrum
+    from parjam.vib import observables
     from parjam.pack.packing import make_jammed
 
     # two members: one per rank under mpirun -n 2 (a shared member would be packed by a
@@ -388,13 +390,13 @@ small_dof = 0
     code, runner = run_scene(text, out, world)
     assert code == 0
     _, (pack,) = make_jammed(3, 64, [1e-2], seed=3, member=0)
-    system = spectrum.active_system(pack)
+    system = dense_system(pack)
     for st in runner.stages:
         if st.kind != "spectrum":
             continue
         rec = stagefile.read_part(runner.part_path(st, 0))["dphi1.0e-02"]
         w = observables.frequency(
-            np.linalg.eigvalsh(spectrum.dense_matrix(system, st.matrix))[system.d:])
+            np.linalg.eigvalsh(dense_matrix(system, st.matrix))[system.d:])
         ref = w[:5] if st.matrix == "full" else w[w <= 0.3]
         np.testing.assert_allclose(rec["frequency"], ref, rtol=1e-8)
         if st.matrix == "full":
@@ -407,7 +409,7 @@ def test_kpm_plateau_gives_the_dense_omega_star_from_the_lowest_modes(shared_tmp
     """omega_star = { k = K, plateau = "kpm" }: D0 from KPM moments, omega* from the K lowest
     modes; both close to the dense whole-spectrum values of the same packing, where the partial
     spectrum's own plateau would be biased low."""
-    from parjam.vib import observables, spectrum
+    from parjam.vib import observables
     from parjam.pack.packing import make_jammed
 
     text = BASE.replace("dphi = [1e-3, 1e-2]", "dphi = [1e-2]").replace("N = 64", "N = 256") \
@@ -424,9 +426,9 @@ small_dof = 0
     for member in range(2):
         rec = stagefile.read_part(runner.part_path(st, member))["dphi1.0e-02"]
         _, (pack,) = make_jammed(3, 256, [1e-2], seed=3, member=member)
-        system = spectrum.active_system(pack)
+        system = dense_system(pack)
         w = observables.frequency(
-            np.linalg.eigvalsh(spectrum.dense_matrix(system, "relaxed"))[system.d:])
+            np.linalg.eigvalsh(dense_matrix(system, "relaxed"))[system.d:])
         d0, wstar, _ = observables.dos_summary(w[w > 0], system.n_modes)
         assert rec["plateau_source"] == "kpm" and len(rec["frequency"]) == 100
         # N' ~ 250: KPM's stochastic D0 is good to a few %, and omega* moves by one mode

@@ -8,6 +8,8 @@ import os
 import numpy as np
 import pytest
 
+from parjam.testing.reference import dense_system
+from parjam.vib.dense import dense_matrix
 from parjam import env
 from parjam.files import h5md, rowio
 from parjam.net import active
@@ -19,6 +21,7 @@ from parjam.files import stagefile
 from parjam.study import runner as runmod
 from parjam.study import scene as sc
 from parjam.study.summary import read_summary
+from conftest import DATA
 
 BASE = """
 [[system]]
@@ -66,8 +69,8 @@ def test_dense_stage_keys_do_not_change_and_kpm_needs_no_eigensolver():
 
 
 def dense_omega(path, kind):
-    system = spectrum.active_system(h5md.read_packing(path))
-    lam = np.linalg.eigvalsh(spectrum.dense_matrix(system, kind))[system.d:]
+    system = dense_system(h5md.read_packing(path))
+    lam = np.linalg.eigvalsh(dense_matrix(system, kind))[system.d:]
     w = observables.frequency(lam)
     return w[w > 0], system.n_modes
 
@@ -116,13 +119,13 @@ small_dof = 0
 def test_kpm_moments_do_not_depend_on_the_ranks(world):
     """The same KPM record (auto moments) from this rank's rows of a file on all ranks as from
     the whole packing on one rank."""
-    path = os.path.join(os.path.dirname(__file__), "data", "ref_d3_mono_N128_dphi1e-03.h5")
+    path = os.path.join(DATA, "ref_d3_mono_N128_dphi1e-03.h5")
     rows = rowio.read_rows(world, path)
     dist = spectrum.distributed_system(active.from_rows(world, rows))
     a = kpm_dos.to_record(kpm_dos.compute(world, dist, "relaxed", "auto", 2, 512))
-    serial = spectrum.active_system(h5md.read_packing(path))
-    b = kpm_dos.to_record(kpm_dos.compute(env.petsc().COMM_SELF, serial, "relaxed", "auto", 2,
-                                          512))
+    self_comm = env.petsc().COMM_SELF
+    serial = spectrum.system_of(self_comm, h5md.read_packing(path))
+    b = kpm_dos.to_record(kpm_dos.compute(self_comm, serial, "relaxed", "auto", 2, 512))
     assert a["kpm_n_moments"] == b["kpm_n_moments"]
     np.testing.assert_allclose(a["kpm_moments"], b["kpm_moments"], atol=1e-10)
     assert a["kpm_D0"] == pytest.approx(b["kpm_D0"], rel=1e-9)
@@ -135,20 +138,21 @@ def test_lowest_modes_with_sums_and_kpm_on_distributed_vectors(world):
     dense modes of the whole packing."""
     from parjam.study.records import spectrum_record
 
-    path = os.path.join(os.path.dirname(__file__), "data", "ref_d3_mono_N128_dphi1e-03.h5")
+    path = os.path.join(DATA, "ref_d3_mono_N128_dphi1e-03.h5")
     req = {"all": False, "k": 20, "window": None, "per_mode": True, "vectors": True,
            "solver": "sinvert", "kpm": {"moments": 256, "probes": 2, "max_moments": 256}}
     rec = spectrum_record(world, rowio.read_rows(world, path), "full", req, 1e-10)
-    system = spectrum.active_system(h5md.read_packing(path))
-    ref = spectrum.compute(env.petsc().COMM_SELF, system, "full", k=20, method="dense",
-                           vectors=True)
+    self_comm = env.petsc().COMM_SELF
+    system = spectrum.system_of(self_comm, h5md.read_packing(path))
+    ref = spectrum.compute(self_comm, system, "full", k=20, method="dense", vectors=True)
+    ref_vectors = spectrum.vectors_on_root(self_comm, ref)
     np.testing.assert_allclose(rec["eigenvalue"], ref.eigenvalue, rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(rec["eps_par"], ref.eps_par, rtol=1e-6, atol=1e-10)
     np.testing.assert_allclose(rec["eps_perp"], ref.eps_perp, rtol=1e-6, atol=1e-10)
     assert rec["plateau_source"] == "kpm" and rec["kpm_n_moments"] == 256
     assert rec["D0"] == rec["kpm_D0"]
     if world.getRank() == 0:  # vectors up to sign, well separated modes only
-        v, r = rec["eigenvector"].reshape(20, -1), ref.vectors.reshape(20, -1)
+        v, r = rec["eigenvector"].reshape(20, -1), ref_vectors.reshape(20, -1)
         gap = np.diff(ref.eigenvalue)
         lone = [i for i in range(1, 19) if min(gap[i - 1], gap[i]) > 1e-3 * ref.eigenvalue[i]]
         overlap = np.abs(np.sum(v * r, axis=1))[lone]

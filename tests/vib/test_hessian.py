@@ -8,7 +8,9 @@ from parjam.net.blocks import KINDS, contact_blocks
 from parjam import env
 from parjam.files import h5md
 from parjam.net import network
+from parjam.testing.reference import dense_system
 from parjam.vib import hessian, spectrum, translations
+from parjam.vib.dense import dense_matrix
 
 PETSc = env.petsc()
 DATA = "tests/data"
@@ -38,6 +40,15 @@ def to_dense(A):
     for r in range(hi - lo):
         local[r, cols[indptr[r]:indptr[r + 1]]] = vals[indptr[r]:indptr[r + 1]]
     return np.vstack(mpi.allgather(local))
+
+
+def in_particle_order(H, system, d):
+    """A dense matrix in a distributed system's active numbering, permuted to ascending particle
+    id (the numbering of the dense reference)."""
+    ids = np.concatenate(PETSc.COMM_WORLD.tompi4py().allgather(system.ids)) \
+        if len(H) != len(system.ids) * d else np.asarray(system.ids)
+    dof = (np.argsort(ids)[:, None] * d + np.arange(d)).ravel()
+    return H[np.ix_(dof, dof)]
 
 
 def mult(A, x):
@@ -81,7 +92,7 @@ def test_matvec_equals_finite_difference_of_forces(packing, alpha):
 @pytest.mark.parametrize("kind", KINDS)
 def test_symmetric_zero_row_sums_no_mallocs(packing, kind):
     pack, net = packing
-    system = spectrum.active_system(pack, net)
+    system = spectrum.system_of(PETSc.COMM_WORLD, pack)
     A = spectrum.dynamical_matrix(PETSc.COMM_WORLD, system, kind)
     info = A.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)
     assert info["mallocs"] == 0
@@ -103,13 +114,14 @@ def test_full_is_relaxed_plus_stress_and_matches_dense(packing):
     """Same matrix on any number of ranks: equal to the dense reference built from all
     contacts by one loop; D = M + M'."""
     pack, net = packing
-    system = spectrum.active_system(pack, net)
+    system = spectrum.system_of(PETSc.COMM_WORLD, pack)
+    reference = dense_system(pack, net)
     dense = {}
     for kind in KINDS:
         A = spectrum.dynamical_matrix(PETSc.COMM_WORLD, system, kind)
-        dense[kind] = to_dense(A)
+        dense[kind] = in_particle_order(to_dense(A), system, pack.d)
         A.destroy()
-        ref = spectrum.dense_matrix(system, kind)
+        ref = dense_matrix(reference, kind)
         assert np.abs(dense[kind] - ref).max() <= 1e-14 * np.abs(ref).max()
     assert np.allclose(dense["full"], dense["relaxed"] + dense["stress"], rtol=0, atol=1e-14)
     # the stress term is negative for repulsive contacts: v^T M' v <= 0 for every v
@@ -118,10 +130,12 @@ def test_full_is_relaxed_plus_stress_and_matches_dense(packing):
 
 def test_one_rank_equals_two_ranks(packing):
     pack, net = packing
-    system = spectrum.active_system(pack, net)
-    A1 = spectrum.dynamical_matrix(PETSc.COMM_SELF, system, "full")
-    Aw = spectrum.dynamical_matrix(PETSc.COMM_WORLD, system, "full")
-    H1, Hw = to_dense(A1), to_dense(Aw)
+    one = spectrum.system_of(PETSc.COMM_SELF, pack)
+    world = spectrum.system_of(PETSc.COMM_WORLD, pack)
+    A1 = spectrum.dynamical_matrix(PETSc.COMM_SELF, one, "full")
+    Aw = spectrum.dynamical_matrix(PETSc.COMM_WORLD, world, "full")
+    H1 = in_particle_order(to_dense(A1), one, pack.d)
+    Hw = in_particle_order(to_dense(Aw), world, pack.d)
     assert np.abs(H1 - Hw).max() <= 1e-15 * np.abs(H1).max()
     A1.destroy()
     Aw.destroy()
@@ -130,7 +144,7 @@ def test_one_rank_equals_two_ranks(packing):
 def test_shift_adds_to_the_diagonal(packing):
     pack, net = packing
     c = net.contacts
-    system = spectrum.active_system(pack, net)
+    system = dense_system(pack, net)  # whole contacts, each once: the pair form of assemble
     blocks = system.blocks("full")
     comm = PETSc.COMM_WORLD
     lo, hi = hessian.row_range(system.n, comm)

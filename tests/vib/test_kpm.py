@@ -19,7 +19,7 @@ REFERENCE = ["ref_d3_mono_N128_dphi1e-06", "ref_d3_mono_N128_dphi1e-03",
 
 
 def reference(name):
-    s = spectrum.active_system(h5md.read_packing(f"{DATA}/{name}.h5"))
+    s = spectrum.system_of(WORLD, h5md.read_packing(f"{DATA}/{name}.h5"))
     lam = np.load(f"{DATA}/{name}.spectrum.npz")["full"][s.d:]  # translations dropped
     return s, lam
 
@@ -145,9 +145,8 @@ def test_one_rank_equals_world():
     mpirun -n 2 this compares 1 rank with 2)."""
     _, (pack,) = __import__("parjam.pack.packing", fromlist=["make_jammed"]).make_jammed(
         3, 128, [1e-2], seed=4)
-    s = spectrum.active_system(pack)
-    one = kpm.compute(SELF, s, "full", 200, 6, seed=9)
-    world = kpm.compute(WORLD, s, "full", 200, 6, seed=9)
+    one = kpm.compute(SELF, spectrum.system_of(SELF, pack), "full", 200, 6, seed=9)
+    world = kpm.compute(WORLD, spectrum.system_of(WORLD, pack), "full", 200, 6, seed=9)
     assert np.allclose(one.a, world.a, rtol=1e-10) and np.allclose(one.b, world.b, rtol=1e-10)
     assert np.abs(one.probe_moments - world.probe_moments).max() < 1e-10
     edges = observables.dos_edges(one.omega_max, 30)

@@ -18,6 +18,7 @@ from parjam.study.fits import fit_power
 from parjam.net.network import analyze
 from parjam.pack.packing import make_jammed
 from parjam.net.system import neighbour_pairs, pair_geometry
+from conftest import ROOT
 
 SELF = env.petsc().COMM_SELF
 
@@ -257,7 +258,7 @@ def test_cli(packs, tmp_path):
     loose = packs[3].rescaled(packs[3].phi - 0.05)
     h5md.write_packing(bad, loose, net_of(loose), {})
     exe = [sys.executable, "-m", "parjam"]
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = ROOT
     env_vars = dict(os.environ, PYTHONPATH=root, OMPI_ALLOW_RUN_AS_ROOT="1",
                     OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMP_NUM_THREADS="1")
     ref = moduli.compute(packs[3], comm=SELF)

@@ -12,6 +12,8 @@ from parjam.vib import observables, solver_choice, spectrum
 from parjam.errors import ParjamError, UnjammedError
 from parjam.pack.packing import make_jammed, random_packing
 from parjam.net.system import Packing
+from parjam.testing.reference import case, dense_system
+from parjam.vib.dense import count_below_dense
 
 PETSc = env.petsc()
 WORLD = PETSc.COMM_WORLD
@@ -22,15 +24,16 @@ REFERENCE = ["ref_d3_mono_N128_dphi1e-06", "ref_d3_mono_N128_dphi1e-03",
 
 @pytest.fixture(scope="module", params=[3, 2], ids=["3d", "2d"])
 def jammed(request):
-    """N = 256 at dphi = 1e-2 (3D mono, 2D bidisperse), the same on every rank."""
+    """N = 256 at dphi = 1e-2 (3D mono, 2D bidisperse), the same on every rank: its system on
+    the ranks and its dense reference."""
     _, (pack,) = make_jammed(request.param, 256, [1e-2], seed=1)
-    return spectrum.active_system(pack)
+    return case(pack)
 
 
 @pytest.fixture(scope="module")
 def dense_spectra(jammed):
     """All eigenvalues of the undeflated dense matrices (numpy), translations included."""
-    return {kind: np.linalg.eigvalsh(spectrum.dense_matrix(jammed, kind))
+    return {kind: np.linalg.eigvalsh(jammed.matrix(kind))
             for kind in ("full", "relaxed")}
 
 
@@ -45,14 +48,14 @@ def deflation_basis(n, d):
 
 def reference(name):
     pack = h5md.read_packing(f"{DATA}/{name}.h5")
-    return spectrum.active_system(pack), np.load(f"{DATA}/{name}.spectrum.npz")
+    return case(pack), np.load(f"{DATA}/{name}.spectrum.npz")
 
 
 # --- lowest modes ----------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["full", "relaxed"])
 def test_lowest_20_equal_dense(jammed, dense_spectra, kind):
     s = jammed
-    spec = spectrum.compute(WORLD, s, kind, k=20, method="sinvert")
+    spec = spectrum.compute(WORLD, s.system, kind, k=20, method="sinvert")
     ref = dense_spectra[kind][s.d:s.d + 20]
     assert spec.complete and len(spec.eigenvalue) == 20
     assert np.all(np.abs(spec.eigenvalue / ref - 1) <= 1e-8)
@@ -65,14 +68,14 @@ def test_lowest_20_equal_reference_spectra(name):
     """The independent implementation's dense spectra (translations kept there)."""
     s, ref = reference(name)
     for kind in ("full", "relaxed"):
-        spec = spectrum.compute(WORLD, s, kind, k=20, method="sinvert")
+        spec = spectrum.compute(WORLD, s.system, kind, k=20, method="sinvert")
         assert np.all(np.abs(spec.eigenvalue / ref[kind][s.d:s.d + 20] - 1) <= 1e-8)
 
 
 @pytest.mark.parametrize("name", REFERENCE[1::2])
 def test_dense_method_equals_reference_whole_spectrum(name):
     s, ref = reference(name)
-    spec = spectrum.compute(WORLD, s, "full", k=s.n_modes, method="dense")
+    spec = spectrum.compute(WORLD, s.system, "full", k=s.n_modes, method="dense")
     assert len(spec.eigenvalue) == s.n_modes == len(ref["full"]) - s.d
     assert np.abs(spec.eigenvalue - ref["full"][s.d:]).max() <= 1e-13 * spec.norm
 
@@ -80,13 +83,13 @@ def test_dense_method_equals_reference_whole_spectrum(name):
 def test_deflation_removes_exactly_d_zero_modes(jammed, dense_spectra):
     s = jammed
     full = dense_spectra["full"]
-    norm = np.abs(spectrum.dense_matrix(s, "full")).sum(axis=1).max()
+    norm = np.abs(s.matrix("full")).sum(axis=1).max()
     zero_tol = spectrum.ZERO_TOL * norm
     # rattlers removed, periodic box: exactly the d translations are zero modes
     assert np.sum(np.abs(full) < zero_tol) == s.d
-    deflated = spectrum.compute(WORLD, s, "full", k=s.n_modes, method="dense")
+    deflated = spectrum.compute(WORLD, s.system, "full", k=s.n_modes, method="dense")
     assert np.allclose(deflated.eigenvalue, full[s.d:], rtol=0, atol=1e-13 * norm)
-    spec = spectrum.compute(WORLD, s, "full", k=10, method="sinvert")
+    spec = spectrum.compute(WORLD, s.system, "full", k=10, method="sinvert")
     assert spec.eigenvalue.min() > 1e3 * zero_tol  # no translation among the results
     assert np.allclose(spec.eigenvalue, full[s.d:s.d + 10], rtol=1e-9, atol=0)
 
@@ -108,13 +111,13 @@ def test_slicing_count_equals_dense(jammed, dense_spectra, kind):
         wa, wb = window_between(eigs, lo_index, s.d + n10)
         if lo_index == s.d:
             wa = 0.0
-        spec = spectrum.compute(WORLD, s, kind, window=(wa, wb), method="slice")
+        spec = spectrum.compute(WORLD, s.system, kind, window=(wa, wb), method="slice")
         inside = eigs[(eigs >= np.sign(wa) * wa**2 + 1e-9 * spec.norm * (wa == 0))
                       & (eigs <= wb**2)]
         assert spec.n_requested == len(inside)  # the inertia count
         assert spec.complete and len(spec.eigenvalue) == len(inside)
         assert np.allclose(spec.eigenvalue, inside, rtol=1e-7, atol=0)
-        dense = spectrum.compute(WORLD, s, kind, window=(wa, wb), method="dense")
+        dense = spectrum.compute(WORLD, s.system, kind, window=(wa, wb), method="dense")
         assert len(dense.eigenvalue) == len(inside)
         if lo_index == s.d:  # below the window: the d translations only (a stable packing)
             assert spec.n_unstable == 0 and spec.info["below_window"] == s.d
@@ -123,18 +126,19 @@ def test_slicing_count_equals_dense(jammed, dense_spectra, kind):
 def test_count_below_dense_is_sylvester_inertia(jammed, dense_spectra):
     s = jammed
     Q = deflation_basis(s.n, s.d)
-    Hd = Q.T @ spectrum.dense_matrix(s, "full") @ Q
+    Hd = Q.T @ s.matrix("full") @ Q
     eigs = dense_spectra["full"][s.d:]
     for k in (0, 5, 40):
         sigma = 0.5 * (eigs[k] + eigs[k + 1])
-        assert spectrum.count_below_dense(Hd, sigma) == k + 1
+        assert count_below_dense(Hd, sigma) == k + 1
 
 
 # --- ranks, observables, vectors -------------------------------------------------------------
 def test_one_rank_equals_all_ranks(jammed):
     s = jammed
-    one = spectrum.compute(PETSc.COMM_SELF, s, "full", k=15, method="sinvert")
-    many = spectrum.compute(WORLD, s, "full", k=15, method="sinvert")
+    one = spectrum.compute(PETSc.COMM_SELF, s.on(PETSc.COMM_SELF), "full", k=15,
+                           method="sinvert")
+    many = spectrum.compute(WORLD, s.system, "full", k=15, method="sinvert")
     assert np.allclose(one.eigenvalue, many.eigenvalue, rtol=1e-11, atol=0)
     for key in ("participation_ratio", "eps_perp", "eps_par"):
         assert np.allclose(getattr(one, key), getattr(many, key), rtol=1e-7, atol=0)
@@ -143,21 +147,26 @@ def test_one_rank_equals_all_ranks(jammed):
 @pytest.mark.parametrize("kind", ["full", "relaxed"])
 def test_distributed_observables_equal_dense_vectors(jammed, kind):
     s = jammed
-    sparse = spectrum.compute(WORLD, s, kind, k=12, method="sinvert", vectors=True)
-    dense = spectrum.compute(WORLD, s, kind, k=12, method="dense", vectors=True)
+    sparse = spectrum.compute(WORLD, s.system, kind, k=12, method="sinvert", vectors=True)
+    dense = spectrum.compute(WORLD, s.system, kind, k=12, method="dense", vectors=True)
     for key in ("participation_ratio", "eps_perp", "eps_par"):
         assert np.allclose(getattr(sparse, key), getattr(dense, key), rtol=1e-6, atol=0)
+    for spec in (sparse, dense):  # each rank holds its own rows, tagged with particle ids
+        assert spec.vectors.shape == (12, len(s.system.ids), s.d)
+        assert np.array_equal(spec.vector_ids, s.system.ids)
+    whole = [spectrum.vectors_on_root(WORLD, spec) for spec in (sparse, dense)]
     if WORLD.getRank() == 0:
-        H = spectrum.dense_matrix(s, kind)
-        V = sparse.vectors.reshape(len(sparse.eigenvalue), -1)
-        assert sparse.vectors.shape == (12, s.n, s.d)
-        res = np.linalg.norm(V @ H - V * sparse.eigenvalue[:, None], axis=1)
-        assert np.all(res <= 1e-9 * sparse.norm)
-        assert np.allclose(np.linalg.norm(V, axis=1), 1.0)
-        assert np.allclose(observables.participation_ratio(sparse.vectors),
-                           sparse.participation_ratio, rtol=1e-10)
+        H = s.matrix(kind)  # rows in particle-id order, as vectors_on_root's
+        for spec, vectors in zip((sparse, dense), whole):
+            V = vectors.reshape(len(spec.eigenvalue), -1)
+            assert vectors.shape == (12, s.n, s.d)
+            res = np.linalg.norm(V @ H - V * spec.eigenvalue[:, None], axis=1)
+            assert np.all(res <= 1e-9 * spec.norm)
+            assert np.allclose(np.linalg.norm(V, axis=1), 1.0)
+            assert np.allclose(observables.participation_ratio(vectors),
+                               spec.participation_ratio, rtol=1e-8)
     else:
-        assert sparse.vectors is None
+        assert whole == [None, None]
 
 
 def test_relaxed_eigenvalue_is_twice_the_longitudinal_sum():
@@ -165,9 +174,9 @@ def test_relaxed_eigenvalue_is_twice_the_longitudinal_sum():
     lambda = sum_<ij> [(dR_j - dR_i).n]^2 = 2 eps_par; the full matrix adds the (negative)
     transverse term."""
     s, _ = reference("ref_d3_mono_N128_dphi1e-03")
-    spec = spectrum.compute(WORLD, s, "relaxed", k=30, method="sinvert")
+    spec = spectrum.compute(WORLD, s.system, "relaxed", k=30, method="sinvert")
     assert np.allclose(spec.eigenvalue, 2 * spec.eps_par, rtol=1e-9, atol=0)
-    full = spectrum.compute(WORLD, s, "full", k=30, method="sinvert")
+    full = spectrum.compute(WORLD, s.system, "full", k=30, method="sinvert")
     assert np.all(full.eigenvalue < 2 * full.eps_par)
 
 
@@ -178,7 +187,7 @@ def test_stress_term_lowers_the_low_frequency_modes(jammed, dense_spectra):
     omega = 0.15
     counts = {}
     for kind in ("full", "relaxed"):
-        spec = spectrum.compute(WORLD, s, kind, window=(0.0, omega), method="slice")
+        spec = spectrum.compute(WORLD, s.system, kind, window=(0.0, omega), method="slice")
         counts[kind] = len(spec.eigenvalue)
         assert counts[kind] == np.sum((dense_spectra[kind] > 1e-6) & (dense_spectra[kind]
                                                                       <= omega**2))
@@ -224,11 +233,11 @@ def test_unstable_packing_is_reported():
     """A random, unminimised overlapping configuration is no energy minimum: the full matrix has
     negative eigenvalues, found by the inertia of the shift-and-invert factor."""
     pack = random_packing(3, 64, 0.9, rng=np.random.default_rng(5))
-    s = spectrum.active_system(pack)
-    dense = spectrum.compute(WORLD, s, "full", k=5, method="dense")
-    sparse = spectrum.compute(WORLD, s, "full", k=5, method="sinvert")
+    s = case(pack)
+    dense = spectrum.compute(WORLD, s.system, "full", k=5, method="dense")
+    sparse = spectrum.compute(WORLD, s.system, "full", k=5, method="sinvert")
     Q = deflation_basis(s.n, s.d)
-    eigs = np.linalg.eigvalsh(Q.T @ spectrum.dense_matrix(s, "full") @ Q)
+    eigs = np.linalg.eigvalsh(Q.T @ s.matrix("full") @ Q)
     n_neg = int(np.sum(eigs < -spectrum.ZERO_TOL * dense.norm))
     assert n_neg > 0
     assert dense.unstable and sparse.unstable
@@ -240,7 +249,7 @@ def test_unconverged_pairs_are_reported_not_kept(jammed):
     opts.setValue("modes_eps_max_it", 1)
     opts.setValue("modes_eps_ncv", 12)
     try:
-        spec = spectrum.compute(WORLD, jammed, "full", k=10, method="sinvert", tol=1e-14)
+        spec = spectrum.compute(WORLD, jammed.system, "full", k=10, method="sinvert", tol=1e-14)
     finally:
         opts.delValue("modes_eps_max_it")
         opts.delValue("modes_eps_ncv")
@@ -250,7 +259,7 @@ def test_unconverged_pairs_are_reported_not_kept(jammed):
 
 
 def test_bad_requests(jammed):
-    s = jammed
+    s = jammed.system
     with pytest.raises(ParjamError, match="exceeds"):
         spectrum.compute(WORLD, s, "full", k=s.n_modes + 1)
     with pytest.raises(ParjamError, match="empty frequency window"):
@@ -268,25 +277,29 @@ def test_bad_requests(jammed):
 def test_unjammed_and_contactless_packings():
     dilute = random_packing(3, 64, 0.05, rng=np.random.default_rng(1))
     with pytest.raises(UnjammedError, match="unjammed"):
-        spectrum.active_system(dilute)
+        dense_system(dilute)
+    with pytest.raises(UnjammedError, match="unjammed"):
+        spectrum.system_of(WORLD, dilute)
     g = np.arange(4) + 0.5
     lattice = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3) * 1.5
     apart = Packing(lattice, np.ones(64), 6.0)
     assert len(network.find_contacts(apart)) == 0
     with pytest.raises(ParjamError, match="no contacts"):
-        spectrum.active_system(apart)
+        dense_system(apart)
+    with pytest.raises(ParjamError, match="no contacts"):
+        spectrum.system_of(WORLD, apart)
 
 
 def test_stress_term_alone_is_negative_semidefinite(jammed):
     """M' has only eigenvalues <= 0: a window on the negative side finds them all, and the
     sinvert modes nearest zero are all negative; no instability is claimed for M'."""
     s = jammed
-    eigs = np.linalg.eigvalsh(spectrum.dense_matrix(s, "stress"))
-    norm = np.abs(spectrum.dense_matrix(s, "stress")).sum(axis=1).max()
+    eigs = np.linalg.eigvalsh(s.matrix("stress"))
+    norm = np.abs(s.matrix("stress")).sum(axis=1).max()
     assert eigs.max() <= 1e-12 * norm
     neg = eigs[eigs < -1e-6]  # the 12 negative eigenvalues nearest zero
     wa = -np.sqrt(-0.5 * (neg[-13] + neg[-12]))
-    spec = spectrum.compute(WORLD, s, "stress", window=(wa, -1e-3), method="slice")
+    spec = spectrum.compute(WORLD, s.system, "stress", window=(wa, -1e-3), method="slice")
     expect = neg[-12:]
     assert len(spec.eigenvalue) == len(expect) and np.allclose(spec.eigenvalue, expect, rtol=1e-7)
     assert not spec.unstable
@@ -327,13 +340,14 @@ def test_matrices_are_the_three_terms_of_eq_1(jammed):
     """Every name in MATRICES is a matrix of Eq. (1) that the commands offer, and the full one
     is the sum of the other two, D = M + M'."""
     assert set(spectrum.MATRICES) == {"full", "relaxed", "stress"}
-    full, relaxed, stress = (spectrum.dense_matrix(jammed, kind) for kind in
+    full, relaxed, stress = (jammed.matrix(kind) for kind in
                              ("full", "relaxed", "stress"))
     np.testing.assert_allclose(full, relaxed + stress, atol=1e-13 * np.abs(full).max())
     assert np.abs(stress).max() > 1e-8 * np.abs(relaxed).max()  # the sum is not trivial
     parser = cli.build_parser()
-    for command in ("modes", "dos"):
+    for command, required in (("modes", ["--k", "5"]), ("dos", [])):
+        argv = [command, "F.h5", "--out", "o.h5", *required, "--matrix"]
         for kind in spectrum.MATRICES:  # each is accepted, one more name is refused
-            assert parser.parse_args([command, "F.h5", "--matrix", kind]).matrix in (kind, [kind])
+            assert parser.parse_args(argv + [kind]).matrix in (kind, [kind])
         with pytest.raises(SystemExit):
-            parser.parse_args([command, "F.h5", "--matrix", "hessian"])
+            parser.parse_args(argv + ["hessian"])

@@ -8,6 +8,8 @@ import os
 import numpy as np
 from mpi4py import MPI
 
+from parjam.testing.reference import dense_system
+from parjam.vib.dense import dense_matrix
 from parjam import env
 from parjam.files import rowio
 from parjam.net import active, network
@@ -31,8 +33,7 @@ def test_vectors_stay_on_their_rows():
     ids = np.concatenate(COMM.allgather(spec.vector_ids))
     vec = np.concatenate(COMM.allgather(spec.vectors.transpose(1, 0, 2)))[np.argsort(ids)]
     pack = read_packing(SOFT)
-    ref = spectrum.active_system(pack, network.analyze(pack))
-    H = spectrum.dense_matrix(ref, "full")
+    H = dense_matrix(dense_system(pack, network.analyze(pack)), "full")
     V = vec.transpose(1, 0, 2).reshape(len(spec.eigenvalue), -1).T
     res = np.linalg.norm(H @ V - V * spec.eigenvalue, axis=0) / np.abs(H).sum(axis=1).max()
     assert res.max() < 1e-9
