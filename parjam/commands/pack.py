@@ -227,7 +227,8 @@ def _run(args):
     validate(args)
     from parjam import env
     from parjam.files import manifest, outputs
-    from parjam.study.members import MemberIncomplete, pack_member, print_table, rows_from_files
+    from parjam.study.members import (MemberIncomplete, pack_member, print_table,
+                                      rows_from_files, stopped_line)
     from parjam.progress import Progress, Relay
 
     PETSc = env.petsc()
@@ -268,7 +269,7 @@ def _run(args):
         except MemberIncomplete as exc:  # its jammed states are written; the others go on
             rows += exc.rows
             if comm.getRank() == 0:
-                incomplete.append(str(exc))
+                incomplete.append((exc.member, exc.step, exc.n_states))
     stage.pop()
     relay.close()
     all_rows = mpi.gather(rows, root=0)
@@ -277,14 +278,17 @@ def _run(args):
         from parjam.files import checkpoint
 
         checkpoint.remove_empty_directory(args.out)
+        incomplete = [entry for part in incomplete for entry in part]
         finished, _ = manifest.finished_members(args.out, params)
-        manifest.write_manifest(args.out, params, finished)
+        manifest.write_manifest(args.out, params, finished,
+                                {m: step for m, step, _ in incomplete})
         for m, files in sorted(done.items()):
             all_rows.append(rows_from_files(args.out, m, files))
         print_table([r for part in all_rows for r in part])
-        incomplete = [line for part in incomplete for line in part]
-        for line in incomplete:
-            print(f"parjam: error: {line}", file=sys.stderr, flush=True)
+        line = stopped_line(incomplete, args.members)
+        if line:  # after the table, on the same stream: never inside it
+            print(line, flush=True)
+        sys.stdout.flush()
     # exit 3 (unjammed) when any member's ladder stopped early, though its jammed states are
     # written: the run did not deliver every state it was asked for (docs/reliability.md)
     return UnjammedError.exit_code if mpi.bcast(bool(incomplete), root=0) else 0

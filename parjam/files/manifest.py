@@ -192,11 +192,14 @@ def finished_members(out, params):
     return done, damaged
 
 
-def write_manifest(out, params, done):
-    """DIR/manifest.json with the parameters and the finished members."""
+def write_manifest(out, params, done, stopped=None):
+    """DIR/manifest.json with the parameters, the finished members and the members whose
+    ladder stopped early (``stopped``: {member: dphi or pressure of the step that unjammed});
+    a stopped member has no record, so the same command computes it again."""
     write_json(os.path.join(out, NAME), {
         "format": FORMAT, "version": VERSION, "parameters": params,
-        "members": {str(m): files for m, files in sorted(done.items())}})
+        "members": {str(m): files for m, files in sorted(done.items())},
+        "stopped": {str(m): float(step) for m, step in sorted((stopped or {}).items())}})
 
 
 _TMP = re.compile(r"^\..+\.tmp(\d+)$")

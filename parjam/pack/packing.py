@@ -62,6 +62,8 @@ RESOLVED_FRACTION = 0.05  # a dphi is resolved when phi_c is known to 5 % of it
 MAX_ESCAPES = 6  # saddle escapes (softest direction, then minimisation) per state
 # where those fail: compression cycles to these multiples of the state's dphi and back
 CYCLE_FACTORS = (10.0, 100.0)
+# a ladder step that unjams is made again from the last jammed state in this many sub-steps
+REJAM_STEPS = 12
 # a returned state is force-balanced to REL_BALANCE of its mean contact force (tighter than
 # --ftol near jamming: at dphi = 1e-10 contact forces are ~3e-11), but not below the round-off
 # floor FORCE_FLOOR * (mean contact stiffness) of the forces
@@ -165,10 +167,12 @@ class Jammer:
         if self.progress is not None:
             self.progress(msg)
 
-    def relax(self, phi=None, e_stop=-np.inf, ftol=None):
+    def relax(self, phi=None, e_stop=-np.inf, ftol=None, newton_first=False):
         """Rescale affinely to phi (if given) and minimise; returns the MinResult.  With a
         checkpoint, a minimisation finished in an earlier run is replayed from its record and an
-        interrupted one continues from its last snapshot."""
+        interrupted one continues from its last snapshot.  ``newton_first``: damped Newton from
+        the rescaled state before any FIRE (no inertia: it goes to the minimum of the basin the
+        rescaling left the packing in, where FIRE's momentum can carry it out of it)."""
         call, ck = self.calls, self.checkpoint
         self.calls += 1
         record = ck.finished(call) if ck is not None else None
@@ -186,9 +190,20 @@ class Jammer:
         hook = ck.snapshot(call, self.ff, self.L, calls_before) if ck is not None else None
         try:
             ftol = self.settings.ftol if ftol is None else ftol
-            res = minimize.minimize(self.ff, ftol, e_stop,
-                                   fire_rel=self.settings.fire_rel, progress=self._inner,
-                                   snapshot=hook, resume=resume)
+            res = None
+            if newton_first and resume is None:
+                res = minimize.newton(self.ff, ftol, progress=self._inner)
+                if res.energy < e_stop:
+                    res.status = "unjammed"
+                elif not res.ok:
+                    steps = res.newton_steps
+                    res = None  # FIRE from where Newton stopped (a saddle region)
+            if res is None:
+                res = minimize.minimize(self.ff, ftol, e_stop,
+                                        fire_rel=self.settings.fire_rel, progress=self._inner,
+                                        snapshot=hook, resume=resume)
+                if newton_first and resume is None:
+                    res.newton_steps += steps
         except ValueError as exc:  # e.g. a box too small for the neighbour search
             raise ParjamError(f"at phi = {self.phi:.10f}: {exc}", collective=False) from None
         self.total_fire += res.fire_steps
@@ -376,10 +391,10 @@ class Jammer:
         net = self.network()
         return self._virial_excess(net.energy, net.pressure)
 
-    def relax_balanced(self, phi=None, e_stop=-np.inf):
+    def relax_balanced(self, phi=None, e_stop=-np.inf, newton_first=False):
         """``relax``, then on to ``balance_tol`` where --ftol is loose against the contact forces
         (near jamming, and for alpha > 2 whose forces ~dphi^(alpha-1) fall below --ftol)."""
-        res = self.relax(phi, e_stop)
+        res = self.relax(phi, e_stop, newton_first=newton_first)
         if res.ok:
             res = self.polish(res, self.balance_tol(self.network()))
         return res
@@ -558,11 +573,11 @@ class Jammer:
         target = 0.5 * (s.e_low + s.e_high) * self.n
         return phi - excess + excess * (target / energy) ** (1.0 / self.alpha)
 
-    def at_phi(self, phi, label, e_stop=None, **info):
+    def at_phi(self, phi, label, e_stop=None, newton_first=False, **info):
         """Minimised, stable (``stabilise``) state at volume fraction phi; UnjammedError if the
         energy falls below ``e_stop`` (default: 1e-6 of the low end of the energy window)."""
         e_stop = self.settings.e_low * self.n * 1e-6 if e_stop is None else e_stop
-        res = self.relax_balanced(phi, e_stop=e_stop)
+        res = self.relax_balanced(phi, e_stop=e_stop, newton_first=newton_first)
         if res.status == "unjammed" or (res.ok and self.network().n_active == 0):
             raise UnjammedError(f"unjammed at phi = {phi:.10f}: energy per particle reached "
                                 f"{res.energy / self.n:.3e}", collective=False)
@@ -589,16 +604,58 @@ class Jammer:
         out = []
         for k, dphi in enumerate(order):
             self._log(f"dphi step {k + 1}/{len(order)}: dphi = {dphi:.1e}")
+            before = self.state_rows()  # the last jammed state: this rank's rows, O(N/P)
+            info = {"dphi": dphi, "phi_c": phi_c, "ladder": direction}
             try:
                 st = self.at_phi(phi_c + dphi, f"dphi{dphi:.1e}",
-                                 e_stop=self.energy_floor(dphi), dphi=dphi, phi_c=phi_c,
-                                 ladder=direction)
-                st.info["dphi_virial"] = self._virial_excess(st.result.energy)
+                                 e_stop=self.energy_floor(dphi), **info)
             except UnjammedError as exc:
-                raise LadderUnjammed(f"ladder step {k + 1} of {len(order)} (dphi = {dphi:.1e}) "
-                                     f"unjammed: {exc}", out, dphi) from None
+                self._log(f"dphi = {dphi:.1e} unjammed ({exc}): again from the last jammed "
+                          f"state, in {REJAM_STEPS} smaller steps, each minimised by Newton "
+                          f"first")
+                try:
+                    st = self.rejam(before, f"dphi{dphi:.1e}", **info)
+                except UnjammedError as again:
+                    raise LadderUnjammed(f"ladder step {k + 1} of {len(order)} (dphi = "
+                                         f"{dphi:.1e}) unjammed, also in {REJAM_STEPS} smaller "
+                                         f"steps with Newton: {again}", out, dphi) from None
+            st.info["dphi_virial"] = self._virial_excess(st.result.energy)
             out.append(st)
         return out
+
+    def restore(self, rows):
+        """Go back to a state made before (its StateRows: positions and box; the diameters
+        never change)."""
+        self.L = rows.L
+        self.ff.set_box(rows.L)
+        self.ff.local(self.ff.x)[:] = rows.x
+
+    def rejam(self, before, label, *, phi_c, dphi, **info):
+        """A ladder step that unjammed, made again from the last jammed state ``before``: the
+        way from its distance to jamming to ``dphi`` cut into REJAM_STEPS geometric sub-steps
+        (linear where they cross zero), each minimised by damped Newton first, so that no
+        momentum carries the packing out of its basin (FIRE's can: it overshoots across a
+        saddle into a configuration jamming at another phi_c).  The state at phi_c + dphi gets
+        the same balance and stability check as any; ``rejammed`` = 1 in its info.  Raises
+        UnjammedError if it unjams again (the member then truly unjams there)."""
+        self.restore(before)
+        start = before.phi - phi_c
+        e_stop = self.energy_floor(dphi)
+        if start > 0 and dphi > 0:
+            steps = [start * (dphi / start) ** (s / REJAM_STEPS) for s in range(1, REJAM_STEPS)]
+        else:
+            steps = [start + (dphi - start) * s / REJAM_STEPS for s in range(1, REJAM_STEPS)]
+        for k, sub in enumerate(steps):
+            # each sub-step a stable state (the escapes of ``stabilise`` follow an instability
+            # of the stress term down its softest mode, gently, where a big step jumped)
+            mid = self.at_phi(phi_c + sub, label, e_stop=min(e_stop, self.energy_floor(abs(sub))),
+                              newton_first=True)
+            self._log(f"  sub-step {k + 1}/{REJAM_STEPS}: dphi = {sub:.2e}, stable "
+                      f"{mid.info.get('stable', 1)}, E/N = {mid.result.energy / self.n:.3e}")
+        st = self.at_phi(phi_c + dphi, label, e_stop=e_stop, newton_first=True, phi_c=phi_c,
+                         dphi=dphi, **info)
+        st.info["rejammed"] = 1
+        return st
 
     def at_pressure(self, p_target, phi_c):
         """Volume fraction where the minimised pressure equals p_target (relative ptol):

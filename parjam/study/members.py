@@ -47,12 +47,15 @@ def member_checkpoint(args, member, comm, progress, run_params):
 
 
 class MemberIncomplete(UnjammedError):
-    """A member's ladder (or target pressures) unjammed at one step: the jammed states before
-    it are written; ``rows`` are their summary rows (group rank 0)."""
+    """A member's ladder (or target pressures) unjammed at one step, also when made again in
+    smaller steps (parjam.pack.packing.Jammer.rejam): the jammed states before it are written;
+    ``rows`` are their summary rows (group rank 0), ``step`` the dphi (or pressure) that
+    unjammed."""
 
-    def __init__(self, message, rows):
+    def __init__(self, message, rows, member, step, n_states):
         super().__init__(message, collective=False)
         self.rows = rows
+        self.member, self.step, self.n_states = member, step, n_states
 
 
 def pack_member(args, member, comm, progress, run_params=None):
@@ -103,7 +106,7 @@ def pack_member(args, member, comm, progress, run_params=None):
         raise MemberIncomplete(f"member {member}: {stopped}; its {len(states)} jammed "
                                f"state(s) before that step are written "
                                f"(ladder_unjammed_at = {stopped.step:.1e} in /observables)",
-                               rows)
+                               rows, member, stopped.step, len(states))
     if run_params is not None:
         outputs.on_root(comm, lambda: manifest.write_member_record(args.out, member, paths,
                                                                    run_params))
@@ -155,6 +158,20 @@ def print_table(rows):
     line = label_line(rows)
     if line:
         print(line)
+
+
+def stopped_line(stopped, members):
+    """The run's count of members whose ladder stopped early (``stopped``: (member, step,
+    states written) of each), or None: one line, printed after the table."""
+    if not stopped:
+        return None
+    steps = sorted({step for _, step, _ in stopped})
+    at = ", ".join(f"{s:.0e}" for s in steps)
+    written = sum(n for _, _, n in stopped)
+    names = ", ".join(f"{m} ({s:.0e})" for m, s, _ in sorted(stopped))
+    return (f"stopped: {len(stopped)} of {members} member(s) stopped at dphi = {at} (unjammed "
+            f"even in smaller steps; {written} state(s) written, the later steps not made): "
+            f"member {names}")
 
 
 def stability_line(rows):
