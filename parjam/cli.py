@@ -60,6 +60,7 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
         text = action.help or ""
         default = action.default
         if (default is None or default is False or default is argparse.SUPPRESS
+                or (isinstance(default, (list, tuple)) and not default)  # no "(default: )"
                 or action.option_strings == [] or "%(default)" in text):
             return text
         shown = " ".join(str(v) for v in default) if isinstance(default, (list, tuple)) \

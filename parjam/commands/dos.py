@@ -14,7 +14,8 @@ def add_parser(sub):
         "dos", help="ensemble-averaged density of states over spectrum files",
         description="D(omega) per mode of each spectrum file (from parjam modes) on common bins "
         "up to the lowest of the files' highest computed frequencies, averaged with standard "
-        "errors; D0 and omega* per file (definitions in docs/spectra.md) and their means.")
+        "errors; D0 and omega* per file (definitions in docs/explanation/physics.md) and their "
+        "means.")
     p.add_argument("spectra", nargs="+", help="spectrum files of one matrix kind (with --method "
                    "kpm: packing files)")
     p.add_argument("--bins", type=int, default=40, help="number of bins (40)")
@@ -23,7 +24,8 @@ def add_parser(sub):
     p.add_argument("--plateau", help="plateau window W1,W2 for D0 and omega*")
     p.add_argument("--out", required=True, help="HDF5 file for the averaged D(omega)")
     p.add_argument("--plot", help="PNG of the averaged D(omega) with error bars")
-    k = p.add_argument_group("stochastic D(omega) of packings (--method kpm, docs/speed-accuracy.md)")
+    k = p.add_argument_group("stochastic D(omega) of packings (--method kpm, "
+                             "docs/results/speed-accuracy.md)")
     k.add_argument("--method", default="spectra", choices=("spectra", "kpm"),
                    help="spectra: average spectrum files (default); kpm: D(omega) of packing "
                    "files by the kernel polynomial method (distributed MatMult only, no "

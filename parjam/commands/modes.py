@@ -1,4 +1,4 @@
-"""``parjam modes``: vibrational spectra of a packing's dynamical matrices (docs/spectra.md)."""
+"""``parjam modes``: spectra of a packing's dynamical matrices (docs/howto/spectra.md)."""
 
 import os
 import sys
@@ -39,7 +39,8 @@ def add_parser(sub):
     p.add_argument("--method", default="auto", choices=spectrum.METHODS,
                    help="auto: --window: dense LAPACK up to 3000 dof, else slice; --k: "
                    "sinvert, or dense up to 3000 dof when N is tiny (<= 400 dof), k >= 15%% of "
-                   "the modes or --tol < 1e-12 (measured crossovers, docs/speed-accuracy.md)")
+                   "the modes or --tol < 1e-12 (measured crossovers, "
+                   "docs/results/speed-accuracy.md)")
     p.add_argument("--vectors", action="store_true", help="store the eigenvectors (K, N', d)")
     p.add_argument("--tol", type=float, default=1e-10,
                    help="accept pairs with ||D v - lambda v|| / ||D||_inf <= TOL (1e-10)")
@@ -49,7 +50,9 @@ def add_parser(sub):
                    "the number of modes computed, 3 to 40)")
     p.add_argument("--log-bins", action="store_true", help="logarithmic D(omega) bins")
     p.add_argument("--omega-min", type=float, help="lowest edge of log bins")
-    p.add_argument("--plateau", help="plateau window W1,W2 for D0 and omega* (default: see docs)")
+    p.add_argument("--plateau", help="plateau window W1,W2 for D0 and omega* (default: the "
+                   "30 %% and 60 %% frequency quantiles of a complete spectrum, "
+                   "[omega_k / 2, omega_k] of the k lowest modes)")
     p.add_argument("--out", required=True, help="spectrum file to write (.h5)")
     p.add_argument("--plot", help="PNG of D(omega), eps_perp/eps_par and participation")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
