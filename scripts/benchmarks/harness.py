@@ -157,9 +157,11 @@ def packing(spec, work):
         return path
     out = os.path.join(work, f"{os.path.splitext(os.path.basename(path))[0]}_x{k}.h5")
     if not os.path.exists(out):
-        made = run([PY, os.path.join(SCRIPTS, "tile_packing.py"), path, k, out])
-        if not made.ok:
-            raise SystemExit(f"bench: cannot tile {spec}: {made.error}")
+        made = subprocess.run([PY, os.path.join(SCRIPTS, "tile_packing.py"), path, k, out],
+                              capture_output=True, text=True, env=dict(os.environ,
+                                                                         PYTHONPATH=ROOT))
+        if made.returncode:
+            raise SystemExit(f"bench: cannot tile {spec}: {made.stderr.strip()[-300:]}")
     return out
 
 
@@ -188,6 +190,13 @@ def variants(specs):
         label, _, rest = spec.partition(":")
         out.append((label.strip(), shlex.split(rest)))
     return out
+
+
+def label(spec):
+    """A packing argument (``PATH`` or ``PATH:K``) as the page shows it, PATH relative to the
+    checkout when inside it."""
+    path, sep, k = spec.partition(":")
+    return relpath(path if os.path.isabs(path) else os.path.join(ROOT, path)) + sep + k
 
 
 def relpath(path):

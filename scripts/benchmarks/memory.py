@@ -39,8 +39,8 @@ def add_arguments(ap):
     ap.add_argument("--command", nargs="+", default=["analyze", "kpm", "moduli"],
                     choices=sorted(PRESETS))
     ap.add_argument("--small", nargs="+", default=[
-        "tests/data/ref_d3_mono_N128_dphi1e-06.h5", "tests/data/soft_d3_N256_m0.h5",
-        "tests/data/soft_d3_N512_m0.h5"], help="jammed packings to tile (one dimension)")
+        "tests/data/ref_d2_bi_N128_dphi1e-03.h5", "tests/data/lengths_d2_N1024_dphi1e-01.h5"],
+        help="jammed packings to tile, of one dimension and stable in their box")
     ap.add_argument("--per-rank", type=int, default=25000)
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 4])
     ap.add_argument("--variant", nargs="+", default=["default:"],

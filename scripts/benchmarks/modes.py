@@ -26,8 +26,9 @@ QUICK = {"packings": ["tests/data/ref_d3_mono_N128_dphi1e-03.h5"], "k": 10, "ran
 
 
 def add_arguments(ap):
-    ap.add_argument("--packings", nargs="+", default=["tests/data/soft_d3_N512_m0.h5:2"],
-                    help="packing files, PATH:K for PATH tiled K^d times")
+    ap.add_argument("--packings", nargs="+", default=["tests/data/lengths_d2_N1024_dphi1e-01.h5", "tests/data/lengths_d2_N1024_dphi1e-01.h5:4"],
+                    help="packing files, PATH:K for PATH tiled K^d times (a packing stable "
+                    "in its box: a tiled copy of one unstable to shear has negative modes)")
     ap.add_argument("--k", type=int, default=100)
     ap.add_argument("--tol", type=float, default=1e-10)
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
@@ -40,12 +41,12 @@ def add_arguments(ap):
     ap.add_argument("--timeout", type=float, default=3600)
 
 
-def peers(path, args):
+def peers(path, spec, args):
     """Rows of scipy and numpy on the packing, and the reference eigenvalues (or None)."""
     net = reference.Network.read(path)
     H = net.hessian()
     norm = float(abs(H).sum(axis=1).max())
-    base = {"packing": harness.relpath(path), "n_active": net.size, "tree": "-", "ranks": 1}
+    base = {"packing": harness.label(spec), "n_active": net.size, "tree": "-", "ranks": 1}
     rows, ref = [], {}
     if net.size <= args.dense_max:
         t0 = time.perf_counter()
@@ -95,9 +96,10 @@ def run(args, trees, work):
     rows = []
     for spec in args.packings:
         path = harness.packing(spec, work)
-        base_rows, truth = peers(path, args)
+        base_rows, truth = peers(path, spec, args)
         rows += base_rows
-        base = dict(base_rows[0]) if base_rows else {"packing": harness.relpath(path)}
+        base = {"packing": harness.label(spec)}
+        base.update({"n_active": base_rows[0]["n_active"]} if base_rows else {})
         for label, opts in harness.variants(args.variant):
             for tree_label, tree in trees:
                 for ranks in args.ranks:
@@ -109,7 +111,7 @@ def run(args, trees, work):
                         row["limit_s"] = row["factor_s"] + 2 * args.k * per
                     rows.append(dict(base, **row, method=f"sinvert {label}", tree=tree_label,
                                      ranks=ranks, diff=diff(lam, truth)))
-        if args.slice and truth is not None:
+        if args.slice and base_rows and base_rows[0]["method"] == "numpy eigvalsh":
             m = int(args.slice * len(truth))
             top = float(np.sqrt(0.5 * (truth[m - 1] + truth[m])))
             for tree_label, tree in trees:

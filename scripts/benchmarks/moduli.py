@@ -25,9 +25,9 @@ QUICK = {"packings": ["tests/data/ref_d3_mono_N128_dphi1e-03.h5"], "ranks": [1],
 
 
 def add_arguments(ap):
-    ap.add_argument("--packings", nargs="+", default=["tests/data/soft_d3_N512_m0.h5:2",
-                                                      "tests/data/soft_d3_N512_m0.h5:4"],
-                    help="packing files, PATH:K for PATH tiled K^d times")
+    ap.add_argument("--packings", nargs="+", default=["tests/data/lengths_d2_N1024_dphi1e-01.h5:3", "tests/data/lengths_d2_N1024_dphi1e-01.h5:6"],
+                    help="packing files, PATH:K for PATH tiled K^d times (stable in its box: "
+                    "CG needs a positive semi-definite D)")
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--variant", nargs="+", default=[
         "default:", "GAMG: -moduli_pc_type gamg",
@@ -37,7 +37,7 @@ def add_arguments(ap):
     ap.add_argument("--timeout", type=float, default=3600)
 
 
-def peer(path):
+def peer(path, spec):
     """The peer's row and its non-affine tensor Xi^T D^+ Xi / V (d^2 x d^2)."""
     net = reference.Network.read(path)
     t0 = time.perf_counter()
@@ -49,7 +49,7 @@ def peer(path):
     U = np.zeros_like(X)
     U[d:] = lu.solve(np.ascontiguousarray(X[d:]))
     Q = X.T @ U / net.L ** d
-    row = {"packing": harness.relpath(path), "n_active": net.size, "variant": "scipy SuperLU",
+    row = {"packing": harness.label(spec), "n_active": net.size, "variant": "scipy SuperLU",
            "tree": "-", "ranks": 1, "setup_s": factor, "solve_s": time.perf_counter() - t0
            - factor, "fill": lu.L.nnz + lu.U.nnz}
     return row, Q
@@ -61,7 +61,7 @@ def run(args, trees, work):
         path = harness.packing(spec, work)
         ref, Q = None, None
         if reference.Network.read(path).size <= args.scipy_max:
-            ref, Q = peer(path)
+            ref, Q = peer(path, spec)
             rows.append(ref)
         for label, opts in harness.variants(args.variant):
             for tree_label, tree in trees:
@@ -70,7 +70,7 @@ def run(args, trees, work):
                     res = harness.run(["parjam", "moduli", path, "--out", out, "-q", *opts,
                                        "-log_view", ":" + out + ".log"], ranks, tree,
                                       args.timeout)
-                    row = {"packing": harness.relpath(path), "variant": label,
+                    row = {"packing": harness.label(spec), "variant": label,
                            "tree": tree_label, "ranks": ranks, "seconds": res.seconds,
                            "peak_mb": res.peak, "rss_mb": res.rss_mb}
                     if not res.ok:

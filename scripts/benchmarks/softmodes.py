@@ -60,7 +60,7 @@ def run(args, trees, work):
                     res = harness.run(["parjam", "softmodes", path, "--cut", args.cut,
                                        "--allow-hyperstatic", "--out", out, "-q", *extra],
                                       ranks, tree, args.timeout)
-                    row = {"packing": harness.relpath(path), "variant": label,
+                    row = {"packing": harness.label(spec), "variant": label,
                            "tree": tree_label, "ranks": ranks, "seconds": res.seconds,
                            "peak_mb": res.peak, "rss_mb": res.rss_mb}
                     if not res.ok:
