@@ -66,7 +66,8 @@ def main(argv=None):
         ap.set_defaults(**mod.QUICK)
     args = ap.parse_args(argv[1:])
     result = {"meta": harness.meta(name, reproducing(name, argv[1:]), args.old)}
-    work = args.work or tempfile.mkdtemp(prefix=f"parjam-bench-{name}-")
+    work = (os.path.abspath(args.work) if args.work
+            else tempfile.mkdtemp(prefix=f"parjam-bench-{name}-"))
     os.makedirs(work, exist_ok=True)
     try:
         with harness.trees(args.old, args.repo) as trees:

@@ -24,8 +24,8 @@ import time
 SCRIPTS = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ROOT = os.path.dirname(SCRIPTS)
 DATA = os.path.join(ROOT, "tests", "data")
-_venv = os.path.join(ROOT, ".venv", "bin", "python")
-PY = _venv if os.path.exists(_venv) else sys.executable
+VENV_PY = os.path.join(ROOT, ".venv", "bin", "python")
+PY = VENV_PY if os.path.exists(VENV_PY) else sys.executable
 
 # Each rank runs its command as the child of this wrapper, which reports the child's peak
 # resident set (wait4's ru_maxrss, kB on Linux) on stderr: /usr/bin/time -f %M, without the

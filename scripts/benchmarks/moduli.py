@@ -19,13 +19,15 @@ import scipy.sparse.linalg as spl
 
 from benchmarks import harness, reference
 
+# 2D, dphi = 0.1: stable in its box, and so are its tiled copies
+STABLE = "tests/data/lengths_d2_N1024_dphi1e-01.h5"
 TITLE = "parjam moduli against its factorisation and solves, and scipy SuperLU"
 QUICK = {"packings": ["tests/data/ref_d3_mono_N128_dphi1e-03.h5"], "ranks": [1],
          "variant": ["default:", "GAMG: -moduli_pc_type gamg"]}
 
 
 def add_arguments(ap):
-    ap.add_argument("--packings", nargs="+", default=["tests/data/lengths_d2_N1024_dphi1e-01.h5:3", "tests/data/lengths_d2_N1024_dphi1e-01.h5:6"],
+    ap.add_argument("--packings", nargs="+", default=[STABLE + ":3", STABLE + ":6"],
                     help="packing files, PATH:K for PATH tiled K^d times (stable in its box: "
                     "CG needs a positive semi-definite D)")
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2])

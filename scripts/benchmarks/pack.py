@@ -78,7 +78,8 @@ def run(args, trees, work):
                     compute = sum(s for name, s in stages.items() if name.startswith("pack:"))
                     calls, kernel = events.get("parjam: force kernel", (0, 0.0))
                     steps = int(params["fire_steps"])
-                    rows.append(dict(row, fire_steps=steps, newton_steps=int(params["newton_steps"]),
+                    rows.append(dict(row, fire_steps=steps,
+                                     newton_steps=int(params["newton_steps"]),
                                      evaluations=int(params["force_evaluations"]),
                                      kernel_calls=calls, kernel_s=kernel, compute_s=compute,
                                      rebuilds=events.get("parjam: nbr rebuild", (0, 0))[0],

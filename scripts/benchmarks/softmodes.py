@@ -76,7 +76,8 @@ def run(args, trees, work):
                                    basis_s=float(g.attrs["seconds_null_space"]),
                                    analysis_s=float(g.attrs["seconds_analysis"]))
                         cut = g["cut_contacts"][()]
-                    row["basis_mb"] = row["n_active"] * row["d"] * row["n_basis"] * 8 / 2**20 / ranks
+                    row["basis_mb"] = (row["n_active"] * row["d"] * row["n_basis"] * 8 / 2**20
+                                       / ranks)
                     if (tree, ranks) not in floor:
                         floor[(tree, ranks)] = harness.floor_mb(ranks, tree)
                     row["extra_mb"] = row["peak_mb"] - floor[(tree, ranks)]
