@@ -68,9 +68,14 @@ class Run:
 
     @property
     def error(self):
-        """The last line of stderr that is not a memory report (a failed run's message)."""
-        lines = [ln for ln in self.stderr.splitlines() if ln.strip() and "PEAKRSS" not in ln]
-        return lines[-1][:200] if lines else f"exit {self.returncode}"
+        """A failed run's exit code and message: parjam's own last line (``parjam: ...``) if
+        there is one, else the last line of stderr that is neither a memory report nor the
+        launcher's frame."""
+        lines = [ln.strip() for ln in self.stderr.splitlines()
+                 if ln.strip().strip("-") and "PEAKRSS" not in ln]
+        own = [ln for ln in lines if ln.startswith("parjam:")]
+        text = (own or lines or [""])[-1][:200]
+        return f"exit {self.returncode}: {text}" if text else f"exit {self.returncode}"
 
 
 def run(argv, ranks=1, tree=ROOT, timeout=None, cwd=None, env=None):

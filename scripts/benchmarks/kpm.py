@@ -40,12 +40,12 @@ def dense(path, spec, args, work):
     t0 = time.perf_counter()
     lam = np.linalg.eigvalsh(net.hessian(args.matrix).toarray())[net.d:]
     seconds = time.perf_counter() - t0
-    spec = os.path.join(work, "dense.h5")
+    every = os.path.join(work, "dense.h5")
     res = harness.run(["parjam", "modes", path, "--matrix", args.matrix, "--method", "dense",
-                       "--k", str(len(lam)), "--out", spec, "-q"], 1, timeout=args.timeout)
+                       "--k", str(len(lam)), "--out", every, "-q"], 1, timeout=args.timeout)
     if not res.ok:
         raise SystemExit(f"bench kpm: the dense reference failed: {res.error}")
-    with h5py.File(spec, "r") as f:  # D0 and omega* of the whole spectrum
+    with h5py.File(every, "r") as f:  # D0 and omega* of the whole spectrum
         d0, wstar = float(f["dos"].attrs["D0"]), float(f["dos"].attrs["omega_star"])
     return {"packing": harness.label(spec), "n_active": net.size, "method": "dense eigvalsh",
             "tree": "-", "ranks": 1, "seconds": seconds, "D0": d0, "omega_star": wstar}, lam
