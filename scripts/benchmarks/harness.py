@@ -235,6 +235,8 @@ BEGIN, END = "<!-- bench {}: begin -->", "<!-- bench {}: end -->"
 def fmt(value, spec):
     if value is None or (isinstance(value, float) and value != value):
         return "-"
+    if spec.endswith("d") and isinstance(value, float):  # numpy integers come back as floats
+        value = int(round(value))
     return format(value, spec) if spec else str(value)
 
 

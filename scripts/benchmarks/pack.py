@@ -75,7 +75,8 @@ def run(args, trees, work):
                         continue
                     params, p, fmax, p_peer = state(out)
                     stages, events = harness.log_view(log)
-                    compute = sum(s for name, s in stages.items() if name.startswith("pack:"))
+                    compute = sum(s for name, s in stages.items()  # stage times are exclusive
+                                  if name not in ("Main Stage", "Unknown"))
                     calls, kernel = events.get("parjam: force kernel", (0, 0.0))
                     steps = int(params["fire_steps"])
                     rows.append(dict(row, fire_steps=steps,
@@ -107,8 +108,8 @@ COLUMNS = [
     ("kernel share", lambda r: r["kernel_s"] / r["compute_s"] if r.get("compute_s") else None,
      ".2f"),
     ("ns/particle/step", per_step, ".0f"),
-    ("kernel ns/particle/call", lambda r: 1e9 * r["kernel_s"] / r["kernel_calls"] / r["n"]
-     if r.get("kernel_calls") else None, ".0f"),
+    ("kernel ns/particle/step", lambda r: 1e9 * r["kernel_s"] / r["fire_steps"] / r["n"]
+     if r.get("fire_steps") else None, ".0f"),
     ("numpy FIRE ns/particle/step", lambda r: 1e9 * r["peer_step_s"] / r["n"]
      if r.get("peer_step_s") else None, ".0f"),
     ("numpy bound / parjam", peer_bound, ".1f"),
@@ -117,9 +118,11 @@ COLUMNS = [
 
 
 def notes(rows):
-    return ["compute s: the `pack:` stages of `-log_view` (phi_c search, ladder or quench, "
-            "stability check); kernel: the `parjam: force kernel` event (fused FIRE step and "
-            "force evaluations), largest rank; ns/particle/step: compute s / FIRE steps / N "
-            "(Newton included); numpy bound: the numpy FIRE's seconds per step times parjam's "
-            "FIRE steps (a lower bound: it has no Newton steps); p vs numpy: relative "
+    return ["compute s: the command's stages in `-log_view` (phi_c search, ladder or quench, "
+            "stability check, writing; not the start-up in the main stage); kernel: the "
+            "`parjam: force kernel` event (the fused FIRE step, two calls per step on several "
+            "ranks, and the force evaluations), largest rank; ns/particle/step: compute s / "
+            "FIRE steps / N (Newton included), and the same for the kernel; numpy bound: the "
+            "numpy FIRE's seconds per step times parjam's FIRE steps (a lower bound: it has no "
+            "Newton steps); p vs numpy: relative "
             "difference of the file's pressure and the numpy peer's from the same positions."]
