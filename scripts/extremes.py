@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""Measurements of issue 20 ("honest at the extremes"), docs/reliability.md "Honest at the
-extremes" and docs/reproduction.md "p / dphi down to 1e-10".
+"""The measurements of docs/reliability.md "Honest at the extremes" and docs/reproduction.md
+"p / dphi down to 1e-10".
 
     scripts/extremes.py pdphi  --dim 3 --n 64 256 --seeds 4 --out bench-out/pdphi-3d.jsonl
     scripts/extremes.py census --dim 3 --n 1024 --members 20 --dphi 1e-9 1e-8 1e-6 \

@@ -1,5 +1,5 @@
-"""The overlap function f(x) of the soft modes against N (issue 23, part 2; docs/reproduction.md
-section 12): isostatic members at several N, both cut geometries, one results JSON.
+"""The overlap function f(x) of the soft modes against N (docs/reproduction.md section 12):
+isostatic members at several N, both cut geometries, one results JSON.
 
 Why one file of ~510 lines: run, adopt, collect and tables share one directory layout
 (ROOT/N{N}[_s{seed}]/packings, cuts, costs.json) and one JSON schema; split, each would have to
@@ -16,7 +16,7 @@ restate them.
 1. packs member m = 0, 1, 2, ... of seed S (default S = N) one at a time:
    ``parjam pack --dim 3 --n N --dphi DPHI --phic-method extrapolate --seed S --members m+1``
    into DIR/N{N}/packings (the members already there are skipped by pack's resume), measuring
-   the wall time and peak RSS of that member (scripts/peak_rss.py);
+   the wall time and peak RSS of that member (/usr/bin/time on every rank);
 2. counts Nc - Nc_iso of the non-rattlers (parjam.softmodes.prepare); a member with
    Nc != Nc_iso is kept on disk and recorded but not cut; it stops when --members isostatic
    members exist or after --max-tries members;
@@ -49,10 +49,9 @@ from parjam import env, softmodes as sm
 from parjam.files import h5md
 from parjam.study import fits
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "scripts"))
-
-from peak_rss import mpirun  # noqa: E402
+def mpirun():
+    """$PARJAM_MPIRUN split (scripts/mpi-env), else an oversubscribing mpirun."""
+    return shlex.split(os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe"))
 
 GEOMETRIES = {  # name: (parjam softmodes arguments, e0 of its trial modes)
     "plane": (["--cut", "x=0.5"], 0.1),
@@ -212,7 +211,7 @@ def adopt(args):
 
 
 def run_measured(ranks, argv, launch):
-    """Run ``argv`` on ``ranks`` ranks ($PARJAM_MPIRUN, scripts/peak_rss.py) or under an explicit
+    """Run ``argv`` on ``ranks`` ranks ($PARJAM_MPIRUN) or under an explicit
     launcher (HPC: srun), one thread per rank: (peak RSS per rank in MB, wall seconds, CPU
     seconds summed over the ranks, CompletedProcess).  The CPU time is the cost to quote on a
     shared machine, where the wall time depends on the load."""

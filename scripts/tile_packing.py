@@ -59,16 +59,5 @@ def main(argv=None):
     return 0
 
 
-def weak_point(spec, work):
-    """A weak-scaling point of the memory benchmarks, ``P:SMALL.h5:K``: (P, SMALL.h5, the
-    tiled packing in ``work``), tiled here unless an earlier run left it there."""
-    ranks, small, k = spec.split(":")
-    tag = os.path.splitext(os.path.basename(small))[0]
-    big = os.path.join(work, f"tiled_{tag}_{os.path.getsize(small)}_k{k}.h5")
-    if not os.path.exists(big) and main([small, k, big]) != 0:
-        raise SystemExit(f"{spec}: cannot tile")
-    return int(ranks), small, big
-
-
 if __name__ == "__main__":
     sys.exit(main())

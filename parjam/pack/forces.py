@@ -136,6 +136,12 @@ class ForceField:
             self.n_rebuilds += 1
             self._build_halo()
 
+    def rebuild_neighbours(self):
+        """Rebuild the Verlet list and its halo now, at the current positions (collective): what
+        an evaluation does when the list is stale; for timing the neighbour search alone
+        (scripts/hpc/profile_phases.py)."""
+        self._rebuild()
+
     def slab_pairs(self, cut):
         """The pairs (i < j) closer than ``cut`` with an end in this rank's block rows, in
         (i, j) order, as the cell search lists them, found on the slabs of parjam.net.domain: the

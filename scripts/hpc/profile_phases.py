@@ -8,7 +8,8 @@
 Each phase runs inside its own PETSc log stage (so ``-log_view`` shows its events, flops and
 messages per stage) and is timed between barriers:
 
-- ``phase: neighbours``  one periodic k-d tree neighbour search (ForceField)
+- ``phase: neighbours``  one Verlet-list rebuild of the ForceField (the cell search on one
+                         rank, the slab search on several) and its halo
 - ``phase: force``       ``--forces`` force evaluations (the minimiser's unit of work)
 - ``phase: assembly``    the distributed MatAIJ of the full dynamical matrix (hessian.assemble)
 - ``phase: factor``      MUMPS LDL^T (Cholesky) of D - target I on SBAIJ, as ``modes`` does
@@ -34,7 +35,7 @@ import numpy as np  # noqa: E402
 
 def timed(comm, name, fn, repeat=1):
     """Run fn() ``repeat`` times inside the log stage ``phase: name``; seconds per call."""
-    from parjam.pack.packing import log_stage
+    from parjam.logstage import log_stage
 
     comm.barrier()
     with log_stage(f"phase: {name}"):
@@ -59,7 +60,6 @@ def main():
     from parjam.files import h5md
     from parjam.vib import spectrum
     from parjam.pack.forces import ForceField
-    from parjam.testing.gather import gather
 
     env.init(petsc_args)
     PETSc = env.petsc()
@@ -73,8 +73,7 @@ def main():
     f = ff.vec()
 
     def neighbours():
-        ff.pairs = None
-        ff._update_pairs(gather(ff))
+        ff.rebuild_neighbours()
 
     rec["neighbours_s"], _ = timed(mpi, "neighbours", neighbours)
     rec["force_s"], _ = timed(mpi, "force", lambda: ff.evaluate(f), args.forces)

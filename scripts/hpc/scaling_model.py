@@ -21,7 +21,7 @@ LATENCY below, typical of an InfiniBand cluster):
                     particle moved half the skin
 - list rebuild      t = 24 B N / B_NET + that search: the all-gather of all N positions (the one
                     O(N)-per-rank transfer left) and the search, once per 1/rate force
-                    evaluations (rate measured by scripts/pack_steps.py: rebuilds per force
+                    evaluations (rate measured by `scripts/bench pack`: rebuilds per force
                     evaluation)
 - assembly          t = a_a N / P
 - matvec (KPM)      t = a_m nnz / P + halo / B_NET + 26 LATENCY, halo = 2 x 8 B x 3 x the
@@ -33,7 +33,7 @@ LATENCY below, typical of an InfiniBand cluster):
                     with ParMETIS/PT-SCOTCH
 - MUMPS solve       t = 2 entries / (P r_s eff(P)) per solve, r_s the measured rate
 - packing           (with --pack-steps) FIRE steps = c_S N^e_S, fitted to the step counts of
-                    scripts/pack_steps.py (the extrapolation protocol to dphi = 1e-3, which do
+                    `scripts/bench pack` (its `protocol` variant, dphi = 1e-3, which do
                     not depend on P), times one FIRE step = force evaluation + rate x list
                     rebuild; Newton steps are left out (FIRE alone above 6000 dof)
 """
@@ -140,7 +140,7 @@ def predict(m, n, p, k=100, moments=512, probes=16):
         "kpm": probes * (moments // 2) * matvec,
         "factor_GB_per_rank": 8 * entries / p / 1e9,
         # all N positions gathered at rebuilds, and their wrapped copy in the search (the k-d
-        # tree holds only the rank's candidates since session 8)
+        # tree holds only the rank's candidates)
         "replicated_GB_per_rank": 8 * 3 * n * 2 / 1e9,
         "matrix_GB_per_rank": 12 * nnz / p / 1e9,
     }
@@ -162,10 +162,22 @@ def hms(s):
     return f"{s / 86400:.0f} d"
 
 
-def pack_steps_fit(path):
-    """(c_S, e_S, N values) of mean total FIRE steps = c_S N^e_S over scripts/pack_steps.py runs."""
+def step_records(path):
+    """Per-run FIRE steps (and rebuilds and force evaluations) of the packing protocol: the
+    rows of the ``protocol`` variant of a ``scripts/bench pack`` result (JSON), or JSON lines of
+    earlier runs ({"n", "fire", "rebuilds", "force_calls"})."""
     with open(path) as fh:
-        rows = [json.loads(line) for line in fh if line.strip()]
+        text = fh.read()
+    if text.lstrip().startswith("{") and '"rows"' in text[:200000]:
+        return [{"n": r["n"], "fire": r["fire_steps"], "rebuilds": r["rebuilds"],
+                 "force_calls": r["evaluations"]} for r in json.loads(text)["rows"]
+                if r.get("variant") == "protocol" and r.get("fire_steps")]
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+def pack_steps_fit(path):
+    """(c_S, e_S, N values) of mean total FIRE steps = c_S N^e_S over the runs of ``path``."""
+    rows = step_records(path)
     ns = sorted({r["n"] for r in rows})
     means = [np.mean([r["fire"] for r in rows if r["n"] == n]) for n in ns]
     c, e = powerfit(ns, means)
@@ -174,16 +186,13 @@ def pack_steps_fit(path):
 
 def rebuild_rate(path):
     """(neighbour-list rebuilds per force evaluation, where from): the mean over the runs at the
-    largest N of a scripts/pack_steps.py file that records them; 1/1000 when none does."""
-    rows = []
-    if path:
-        with open(path) as fh:
-            rows = [r for r in map(json.loads, filter(str.strip, fh)) if "rebuilds" in r]
+    largest N of ``path`` that record them; 1/1000 when none does."""
+    rows = [r for r in step_records(path) if "rebuilds" in r] if path else []
     if not rows:
         return 1e-3, "assumed"
     n = max(r["n"] for r in rows)
     rate = float(np.mean([r["rebuilds"] / r["force_calls"] for r in rows if r["n"] == n]))
-    return rate, f"scripts/pack_steps.py, N = {n}"
+    return rate, f"scripts/bench pack, N = {n}"
 
 
 def tables(m, records):
@@ -214,7 +223,7 @@ def tables(m, records):
             f"{m['entries_c']:.3g} dof^{m['entries_e']:.2f}; rates {m['factor_rate'] / 1e9:.2f} "
             f"Gflop/s (factor), {m['solve_rate'] / 1e9:.2f} Gflop/s (solve) on one core",
             *([f"- packing: {m['steps_c']:.3g} N^{m['steps_e']:.2f} FIRE steps to dphi = 1e-3 "
-               f"(scripts/pack_steps.py, N = {m['steps_n'][0]}..{m['steps_n'][-1]})"]
+               f"(scripts/bench pack, N = {m['steps_n'][0]}..{m['steps_n'][-1]})"]
               if "steps_c" in m else []),
             "- 2 ranks against 1 (speed-up per phase; the 2 cores were shared with other jobs): "
             + "; ".join(f"N = {n}: " + ", ".join(f"{k[:-2]} {v:.2f}x" for k, v in s.items())
@@ -245,9 +254,9 @@ def main():
     ap.add_argument("profile", help="JSON list from profile_phases.py")
     ap.add_argument("--md", help="write the tables into this page between the markers")
     ap.add_argument("--json", help="write the fitted model here")
-    ap.add_argument("--pack-steps", help="JSON lines of scripts/pack_steps.py: adds the packing "
-                    "time at dphi = 1e-3 to the extrapolation")
-    ap.add_argument("--rebuilds", help="JSON lines of scripts/pack_steps.py with rebuild counts "
+    ap.add_argument("--pack-steps", help="a scripts/bench pack result (JSON; its protocol "
+                    "variant): adds the packing time at dphi = 1e-3 to the extrapolation")
+    ap.add_argument("--rebuilds", help="a scripts/bench pack result with rebuild counts "
                     "(default: --pack-steps): list rebuilds per force evaluation at the largest N")
     args = ap.parse_args()
     with open(args.profile) as f:
