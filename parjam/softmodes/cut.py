@@ -278,7 +278,7 @@ def cut_system(net, planes, is_cut, per_plane, source=None):
 
 
 def prepare(pack, planes, allow_hyperstatic=False, net=None, comm=None):
-    """The cut system: the distributed active network (``net``, from parjam.files.rowio.network, or
+    """The cut system: the distributed active network (``net``, from parjam.net.active.from_rows, or
     built from the packing ``pack`` every rank holds on ``comm``, default COMM_SELF), checked
     for isostaticity, its half-edges crossing ``planes`` cut (collective)."""
     if not planes:

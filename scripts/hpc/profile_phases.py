@@ -80,8 +80,8 @@ def main():
     f.destroy()
     ff.destroy()
 
-    system = spectrum.active_system(pack)
-    rec.update({"N_active": system.n, "contacts": len(system.r), "dof": system.dof})
+    system = spectrum.system_of(comm, pack)
+    rec.update({"N_active": system.n, "contacts": system.n_contacts, "dof": system.dof})
     rec["assembly_s"], A = timed(mpi, "assembly",
                                  lambda: spectrum.dynamical_matrix(comm, system, "full"))
     norm = A.norm(PETSc.NormType.INFINITY)
