@@ -225,6 +225,7 @@ def _run(args):
     validate(args)
     from parjam import env
     from parjam.files import manifest, outputs
+    from parjam.pack import stability
     from parjam.pack.ensemble import MemberIncomplete, pack_member, print_table, rows_from_files
     from parjam.progress import Progress, Relay
 
@@ -233,6 +234,7 @@ def _run(args):
     mpi = world.tompi4py()
     protocol = PackingProtocol.from_namespace(args)
     params = manifest.run_parameters(protocol)
+    stability.Settings.from_options()  # bad -stability_* options: refused before any work
     if fits_machine(args, world):  # --dry-run: the estimate only
         return 0
     outputs.check(world, dirs=[("--out", args.out)])

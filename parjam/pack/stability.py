@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from parjam import env
+from parjam.errors import ParjamError
 from parjam.logevents import STABILITY_INERTIA, STABILITY_LANCZOS, event
 from parjam.net import potential
 from parjam.pack import jamnet
@@ -101,8 +102,6 @@ class Settings:
         opts = env.petsc().Options(PREFIX)
         method = opts.getString("method", "lanczos")
         if method not in METHODS:
-            from parjam.errors import ParjamError
-
             raise ParjamError(f"-{PREFIX}method {method}: choose from {', '.join(METHODS)}")
         return cls(method, opts.getInt("exact_max_dof", EXACT_MAX_DOF),
                    lowest.Settings.from_options(PREFIX))
@@ -203,10 +202,9 @@ def lanczos_test(comm, H, s, settings=None, want_vector=False):
     """parjam.vib.lowest's test of the ActiveHessian ``H`` against -s, from the start vector of
     its particles' ids (collective)."""
     with event(STABILITY_LANCZOS):
-        A = H.matrix(comm)
+        A = H.matrix(comm)  # assembled: no setFromOptions (a -mat_type would empty it)
         try:
             A.setOptionsPrefix(PREFIX + lowest.OPTIONS)
-            A.setFromOptions()
             st = settings or lowest.Settings.from_options(PREFIX)
             start = lowest.start_rows(H.edges.ids, H.d, st.seed)
             return lowest.lowest_test(A, H.d, s, start, st, want_vector=want_vector)

@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from parjam import env
+from parjam.errors import ParjamError
 
 WITNESS_MARGIN = 2.0  # "below" needs a Rayleigh quotient <= -2 s: s of margin for its round-off
 DELTA = 1e-10  # probability bound of a missed eigenvalue below -s
@@ -85,13 +86,22 @@ class Settings:
 
     @classmethod
     def from_options(cls, prefix):
-        """The defaults, overridden by -<prefix>lanczos_{delta,max_it,check_every,rtol,seed}."""
+        """The defaults, overridden by -<prefix>lanczos_{delta,max_it,check_every,rtol,seed}
+        (the test's setFromOptions); values that cannot work are a ParjamError."""
         opts = env.petsc().Options(prefix + OPTIONS)
-        s = cls()
-        return cls(delta=opts.getReal("delta", s.delta),
-                   max_steps=opts.getInt("max_it", s.max_steps),
-                   check_every=max(1, opts.getInt("check_every", s.check_every)),
-                   rtol=opts.getReal("rtol", s.rtol), seed=opts.getInt("seed", s.seed))
+        d = cls()
+        s = cls(delta=opts.getReal("delta", d.delta), max_steps=opts.getInt("max_it", d.max_steps),
+                check_every=opts.getInt("check_every", d.check_every),
+                rtol=opts.getReal("rtol", d.rtol), seed=opts.getInt("seed", d.seed))
+        name = f"-{prefix}{OPTIONS}"
+        for ok, what in ((0.0 < s.delta < 1.0, f"{name}delta {s.delta:g}: must lie in (0, 1)"),
+                         (s.max_steps >= 1, f"{name}max_it {s.max_steps}: must be >= 1"),
+                         (s.check_every >= 1, f"{name}check_every {s.check_every}: must be >= 1"),
+                         (0.0 < s.rtol < 1.0, f"{name}rtol {s.rtol:g}: must lie in (0, 1)"),
+                         (s.seed >= 0, f"{name}seed {s.seed}: must be >= 0")):
+            if not ok:
+                raise ParjamError(what)
+        return s
 
 
 def _mix(z):

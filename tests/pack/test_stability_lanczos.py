@@ -11,6 +11,8 @@ a few s, and inside the round-off band (a shell matrix D - c q q^T, q a dense ei
 """
 
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -24,7 +26,7 @@ from parjam.pack import jamnet, stability
 from parjam.vib import hessian, lowest
 from parjam.net.system import wrap
 
-from conftest import DATA
+from conftest import DATA, ROOT, subprocess_env
 
 COMM = MPI.COMM_WORLD
 WORLD = env.petsc().COMM_WORLD
@@ -256,7 +258,28 @@ def test_options_choose_the_method():
         opts["stability_method"] = "cholesky"
         with pytest.raises(ParjamError, match="stability_method"):
             stability.Settings.from_options()
+        opts["stability_method"] = "lanczos"
+        for key, bad in (("delta", 0), ("delta", 1.5), ("max_it", 0), ("rtol", 2),
+                         ("check_every", 0)):
+            opts[f"stability_lanczos_{key}"] = bad
+            with pytest.raises(ParjamError, match=f"stability_lanczos_{key}"):
+                stability.Settings.from_options()
+            opts.delValue(f"stability_lanczos_{key}")
     finally:
         for k in ("stability_method", "stability_lanczos_max_it"):
             opts.delValue(k)
     assert stability.Settings.from_options().method == "lanczos"
+
+
+@pytest.mark.serial
+@pytest.mark.parametrize("option", [["-stability_method", "cholesky"],
+                                    ["-stability_lanczos_delta", "2"]])
+def test_pack_refuses_bad_stability_options_before_any_work(tmp_path, option):
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "parjam", "pack", "--n", "32", "--phi", "0.7",
+                          "--out", str(out), "-q", *option], cwd=ROOT, env=subprocess_env(),
+                         capture_output=True, text=True, timeout=300)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1, res.stderr
+    assert lines[0].startswith("parjam: error: " + option[0])
+    assert not out.exists()
