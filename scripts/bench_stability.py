@@ -118,7 +118,7 @@ def cmd_check(args):
         for rep in range(args.repeats):
             for path in args.files:
                 for p in args.ranks:
-                    order = METHODS if (rep + p) % 2 == 0 else METHODS[::-1]
+                    order = args.methods if (rep + p) % 2 == 0 else args.methods[::-1]
                     for method in order:
                         ld = load()
                         rec = child(path, p, method, args.petsc)
@@ -274,6 +274,7 @@ def main():
     a.add_argument("--ranks", type=int, nargs="+", default=[1])
     a.add_argument("--repeats", type=int, default=3)
     a.add_argument("--petsc", nargs="*", default=[], help="more PETSc options for both")
+    a.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     a.add_argument("--out", required=True)
     a = sub.add_parser("weak")
     a.add_argument("--dir", required=True)

@@ -77,7 +77,8 @@ class Curvature:
     failure: float = 0.0  # Lanczos "stable": bound on the probability of a missed negative one
     steps: int = 0  # Lanczos steps
     why: str = ""  # why the Lanczos test was inconclusive, if it was
-    mode: np.ndarray = field(default=None, repr=False, compare=False)  # rows [lo, hi)
+    mode: np.ndarray = field(default=None, repr=False, compare=False)  # witness, rows [lo, hi)
+    mode_residual: float = np.inf  # ||D x - lowest x|| of the unit witness
 
     @property
     def stable(self):
@@ -186,13 +187,14 @@ def check(comm, net, settings=None):
     s = shift_for(H.norm)
     if cfg.method == "inertia":
         return Curvature(count_below(comm, H, -s), s, net.excess, net.n_active)
-    res = lanczos_test(comm, H, s, cfg.lanczos, want_vector=net.excess < 0)
+    res = lanczos_test(comm, H, s, cfg.lanczos)
     args = (s, net.excess, net.n_active)
     info = {"lowest": res.lowest, "steps": res.steps}
     if res.verdict == lowest.BELOW:
-        return Curvature(res.n_below, *args, "lanczos", mode=res.vector, **info)
+        return Curvature(res.n_below, *args, "lanczos", mode=res.vector,
+                         mode_residual=res.residual, **info)
     if res.verdict == lowest.NOT_BELOW:
-        return Curvature(0, *args, "lanczos", failure=res.failure, mode=res.vector, **info)
+        return Curvature(0, *args, "lanczos", failure=res.failure, **info)
     if H.n * H.d <= cfg.exact_max_dof:
         return Curvature(count_below(comm, H, -s), *args, "inertia", why=res.why, **info)
     return Curvature(-1, *args, "undecided", why=res.why, **info)
@@ -216,12 +218,19 @@ def softest_direction(comm, net, curvature):
     """Displacement of the owned particles (rows of ``net.state``) along the lowest
     non-translational eigenvector of the active Hessian, zero on rattlers, scaled to a largest
     particle displacement of 1 over all ranks, and its eigenvalue; (None, nan) if none is
-    found.  The Lanczos check's vector where it has one (``curvature.mode``), else
+    found.  After a Lanczos check its witness where that has converged to an eigenvector, else
+    the lowest Ritz vector of a Lanczos run that goes on until it has; after an exact count
     ``exact_softest``."""
-    if curvature.mode is not None:
-        vec, lam = curvature.mode, curvature.lowest
-    else:
+    cfg = Settings.from_options()
+    if curvature.method != "lanczos":
         vec, lam = exact_softest(comm, net, curvature)
+    elif curvature.mode is not None and curvature.mode_residual <= max(
+            cfg.lanczos.rtol * abs(curvature.lowest), lowest.FLOOR * curvature.shift):
+        vec, lam = curvature.mode, curvature.lowest
+    else:  # the witness is not yet an eigenvector: converge the lowest Ritz pair
+        res = lanczos_test(comm, active_hessian(net), curvature.shift, cfg.lanczos,
+                           want_vector=True)
+        vec, lam = res.vector, res.lowest
     if vec is None:
         return None, np.nan
     out = np.zeros((len(net.state.ids), net.d))

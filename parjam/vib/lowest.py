@@ -9,11 +9,13 @@ allreduce of d numbers) from a pseudo-random start, without reorthogonalisation:
 this rank's rows, plus a fourth to rebuild a Ritz vector.  After k steps it holds the tridiagonal
 T_k (alpha_1..alpha_k, beta_1..beta_k, beta_k the residual norm) and decides:
 
-- **below** (an eigenvalue of A lies below -s): the Ritz vector x of the lowest Ritz value,
-  rebuilt by a second pass of the same recurrence and projected off T, has the Rayleigh quotient
-  x^T A x / x^T x <= -WITNESS_MARGIN s, computed from A itself.  By Courant-Fischer
-  lambda_min <= that quotient: a certificate that needs no probability, and x is the direction
-  in which the packing leaves the saddle.
+- **below** (an eigenvalue of A lies below -s): once the lowest Ritz value theta and its
+  residual bound r = beta_k |y_k| satisfy theta + r < -WITNESS_MARGIN s, its Ritz vector x is
+  rebuilt by a second pass of the same recurrence, projected off T, and its Rayleigh quotient
+  x^T A x / x^T x, computed from A itself, must lie below -WITNESS_MARGIN s too.  By
+  Courant-Fischer lambda_min <= that quotient: a certificate that needs no probability.  Asked
+  for a vector, the recurrence first goes on until the Ritz pair has converged, and x is the
+  direction in which the packing leaves the saddle.
 - **not below** (no eigenvalue below -s): every Ritz value lies above -s and the start vector's
   component along any eigenvector with an eigenvalue mu <= -s is at most
 
@@ -55,7 +57,7 @@ WITNESS_MARGIN = 2.0  # "below" needs a Rayleigh quotient <= -2 s: s of margin f
 DELTA = 1e-10  # probability bound of a missed eigenvalue below -s
 MAX_STEPS = 40000  # step budget (each one product with A)
 CHECK_EVERY = 25  # steps between evaluations of the lowest Ritz pair (when one lies below -s)
-RTOL = 1e-3  # a Ritz pair is converged when its residual bound is RTOL |theta|
+RTOL = 1e-6  # a Ritz pair has converged when its residual bound is RTOL |theta|
 FLOOR = 0.01  # ... or FLOOR s (= eps ||A||: the round-off floor of a residual)
 OPTIONS = "lanczos_"  # sub-prefix of the caller's options prefix
 
@@ -270,9 +272,12 @@ def rayleigh(A, x, d):
 
 def lowest_test(A, d, s, start, settings=None, want_vector=False):
     """Decide whether the symmetric ``A`` (translations deflated) has an eigenvalue below -s
-    (s > 0), from ``start`` (this rank's rows, e.g. ``start_rows``); see the module doc.  With
-    ``want_vector`` a NOT_BELOW answer also converges and returns the lowest Ritz vector (the
-    direction a packing with too few contacts leaves along).  Collective on A's communicator."""
+    (s > 0), from ``start`` (this rank's rows, e.g. ``start_rows``); see the module doc.  The
+    test stops at its verdict; a BELOW answer comes with its witness (a Ritz vector with a
+    quotient below -2 s, not necessarily an eigenvector).  With ``want_vector`` the recurrence
+    goes on until the lowest Ritz pair has converged (residual bound RTOL |theta|, or at the
+    round-off floor) and returns that vector with either answer: the direction a packing leaves
+    a saddle along.  Collective on A's communicator."""
     st = settings or Settings()
     n_dim = A.getSize()[0] - d
     log_sphere = 0.5 * np.log(2.0 * max(n_dim, 1) / np.pi)
@@ -280,7 +285,7 @@ def lowest_test(A, d, s, start, settings=None, want_vector=False):
     rec = _Recurrence(A, d, start)
     alphas, betas = [], []
     piv, log_tau, n_neg = 1.0, 0.0, 0
-    verdict, why, pair = INCONCLUSIVE, "step budget exhausted", None
+    verdict, why, pair = None, "", None
     band = -WITNESS_MARGIN * s
     try:
         for k in range(1, st.max_steps + 1):
@@ -293,48 +298,58 @@ def lowest_test(A, d, s, start, settings=None, want_vector=False):
                 piv = -np.finfo(np.float64).eps * (abs(a) + s)
             n_neg += piv < 0.0
             log_tau += (np.log(b) if b > 0.0 else -np.inf) - np.log(abs(piv))
-            exhausted = b <= 1e-14 * max(abs(a), 1.0) or k == st.max_steps
+            invariant = b <= 1e-14 * max(abs(a), 1.0)
+            exhausted = invariant or k == st.max_steps
             due = k % st.check_every == 0 or exhausted
-            if n_neg == 0:
-                if log_tau + log_sphere > log_delta and not exhausted:
-                    continue
-                if log_tau + log_sphere > log_delta and b > 1e-14 * max(abs(a), 1.0):
-                    break  # the budget ran out: inconclusive
-                if not want_vector:
-                    verdict, why = NOT_BELOW, ""
-                    break
-                if due or pair is None:
-                    pair = _lowest_pair(alphas, betas)
-                    if pair[1] <= max(st.rtol * abs(pair[0]), FLOOR * s) or exhausted:
-                        verdict, why = NOT_BELOW, ""
+            if verdict == NOT_BELOW and n_neg > 0:
+                verdict = None  # a Ritz value went below -s after all: decide again
+            if verdict is None:
+                if n_neg == 0:
+                    if log_tau + log_sphere <= log_delta or invariant:
+                        verdict = NOT_BELOW
+                    elif exhausted:
+                        low = _lowest_pair(alphas, betas)
+                        why = (f"step budget of {st.max_steps} exhausted (lowest Ritz value "
+                               f"{low[0]:.3e}, failure bound "
+                               f"{np.exp(min(log_tau + log_sphere, 0.0)):.1e})")
                         break
-                continue
-            if not due:
-                continue
-            pair = _lowest_pair(alphas, betas)
-            theta, res = pair[0], pair[1]
-            if theta + res < band and (res <= max(st.rtol * abs(theta), FLOOR * s)
-                                       or exhausted):
-                verdict, why = BELOW, ""
-                break
-            if band <= theta - res and theta + res <= 0.0:
-                why = (f"lowest Ritz value {theta:.3e} converged inside the round-off band "
-                       f"[{band:.2e}, 0]")
-                break
-            if exhausted:
-                why = "no decision within the step budget"
-                break
+                    else:
+                        continue
+                elif due:
+                    pair = _lowest_pair(alphas, betas)
+                    theta, res = pair[0], pair[1]
+                    if theta + res < band:
+                        verdict = BELOW
+                    elif band <= theta - res and theta + res <= 0.0:
+                        why = (f"lowest Ritz value {theta:.3e} converged inside the round-off "
+                               f"band [{band:.2e}, 0]")
+                        break
+                    elif exhausted:
+                        why = (f"step budget of {st.max_steps} exhausted (lowest Ritz value "
+                               f"{theta:.3e} +- {res:.1e})")
+                        break
+                    else:
+                        continue
+                else:
+                    continue
+                if not want_vector:
+                    break
+            if due or exhausted or pair is None or len(pair[2]) != k:
+                pair = _lowest_pair(alphas, betas)
+                if pair[1] <= max(st.rtol * abs(pair[0]), FLOOR * s) or exhausted:
+                    break
         steps = len(alphas)
         failure = float(np.exp(min(log_tau + log_sphere, 0.0))) if n_neg == 0 else 1.0
-        if verdict == INCONCLUSIVE or (verdict == NOT_BELOW and not want_vector):
+        if verdict is None or (verdict == NOT_BELOW and not want_vector):
             low = _lowest_pair(alphas, betas)
-            if verdict == INCONCLUSIVE and n_neg == 0 and why.startswith("step"):
-                why = (f"step budget of {st.max_steps} exhausted (lowest Ritz value "
-                       f"{low[0]:.3e}, failure bound {failure:.1e})")
-            return LanczosResult(verdict, steps, low[0], low[1], 0,
-                                 failure if verdict == NOT_BELOW else 1.0, None, why)
+            if verdict is None:
+                return LanczosResult(INCONCLUSIVE, steps, low[0], low[1], 0, 1.0, None,
+                                     why or "no decision")
+            return LanczosResult(NOT_BELOW, steps, low[0], low[1], 0, failure)
     finally:
         rec.destroy()
+    if pair is None or len(pair[2]) != steps:
+        pair = _lowest_pair(alphas, betas)
     theta, res, y = pair
     x = _rebuild(A, d, start, y)
     try:
@@ -344,10 +359,10 @@ def lowest_test(A, d, s, start, settings=None, want_vector=False):
     finally:
         x.destroy()
     if verdict == BELOW:
-        if rho > -WITNESS_MARGIN * s:
+        if rho > band:
             return LanczosResult(INCONCLUSIVE, steps, rho, true_res, 0, 1.0, None,
-                                 f"witness Rayleigh quotient {rho:.3e} not below "
-                                 f"{-WITNESS_MARGIN * s:.2e} (Ritz value {theta:.3e})")
+                                 f"witness Rayleigh quotient {rho:.3e} not below {band:.2e} "
+                                 f"(Ritz value {theta:.3e})")
         return LanczosResult(BELOW, steps, rho, true_res,
                              max(1, _distinct_below(alphas, betas, -s, s)), 1.0, vec)
     return LanczosResult(NOT_BELOW, steps, rho, true_res, 0, failure, vec)
