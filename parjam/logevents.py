@@ -8,6 +8,8 @@ packing spends its time (next to the stages of parjam.pack.packing.log_stage):
   parjam: migration         the engine's hand-over of particles to the slabs that own them
   parjam: Newton assembly   the Hessian's assembly for a Newton step
   parjam: Newton factor     the factorisation (or preconditioner set-up) of a Newton step
+  parjam: stab Lanczos      the stability check's Lanczos test (parjam.pack.stability)
+  parjam: stab inertia      the stability check's exact inertia (MUMPS LDL^T)
 
 All events are registered together, in this order, the first time one is used, so every rank
 numbers them alike.
@@ -22,7 +24,10 @@ HALO = "parjam: halo exchange"
 ASSEMBLY = "parjam: Newton assembly"
 FACTOR = "parjam: Newton factor"
 MIGRATE = "parjam: migration"
-NAMES = (FORCE, ALLREDUCE, REBUILD, HALO, ASSEMBLY, FACTOR, MIGRATE)
+STABILITY_LANCZOS = "parjam: stab Lanczos"
+STABILITY_INERTIA = "parjam: stab inertia"
+NAMES = (FORCE, ALLREDUCE, REBUILD, HALO, ASSEMBLY, FACTOR, MIGRATE, STABILITY_LANCZOS,
+         STABILITY_INERTIA)
 
 _events = {}
 

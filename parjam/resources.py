@@ -26,22 +26,30 @@ MAX_DAYS = 30.0
 #: a member are not divided over the ranks that share it (conservative)
 PACK_BASE_MB = 150.0
 PACK_PER_PARTICLE_MB = 0.0105
-#: the stability check of every returned state (parjam.pack.stability: a MUMPS LDL^T of the full
-#: Hessian, its factor discarded, so its frontal stack): in 3D 745 MB at N = 32768, growing as
-#: N^1.5 (measured 55 / 273 / 745 / 2042 MB at N = 4096 / 13824 / 32768 / 64000, exponent 1.5
-#: over the last pair; docs/scaling.md, "Counting without keeping the factor").  In 2D it adds
-#: under 1 kB per particle (245 MB at N = 262,144), inside PACK_PER_PARTICLE_MB.
+#: the stability check of every returned state (parjam.pack.stability).  Its Lanczos test (the
+#: default) keeps O(N) memory: the matrix, four vectors and the assembly's arrays, 4.6 kB per
+#: particle in 3D (18 / 37 / 76 MB at N = 4096 / 8192 / 16384, phi = 0.70; docs/results/
+#: stability.md).  Where that test is inconclusive, the exact inertia (a MUMPS LDL^T of the
+#: full Hessian, its factor discarded, so its frontal stack) decides, but only up to
+#: stability.EXACT_MAX_DOF = 100,000 rows (N = 33,333 in 3D): in 3D 745 MB at N = 32768, growing
+#: as N^1.5 (measured 55 / 273 / 745 MB at N = 4096 / 13824 / 32768; docs/scaling.md,
+#: "Counting without keeping the factor"), so below that size the model keeps the factor.  In
+#: 2D the factor adds under 1 kB per particle (245 MB at N = 262,144), inside
+#: PACK_PER_PARTICLE_MB.
 PACK_CHECK_3D_MB = 745.0
 PACK_CHECK_3D_N = 32768.0
 PACK_CHECK_EXPONENT = 1.5
+PACK_CHECK_EXACT_MAX_N = 100000.0 / 3.0
+PACK_CHECK_LANCZOS_MB = 0.0046  # per particle in 3D; (d / 3)^2 of it in d dimensions
 
 
 def pack_memory_mb(n, d=3):
     """Estimated peak memory of one pack process for a member of N particles in d dimensions
-    (MB): the engine's arrays, plus the stability check's factorisation in 3D."""
-    check = 0.0
-    if d == 3:
-        check = PACK_CHECK_3D_MB * (float(n) / PACK_CHECK_3D_N) ** PACK_CHECK_EXPONENT
+    (MB): the engine's arrays, plus the stability check (its exact fall-back's factorisation in
+    3D where that may run)."""
+    check = PACK_CHECK_LANCZOS_MB * (d / 3.0) ** 2 * float(n)
+    if d == 3 and n <= PACK_CHECK_EXACT_MAX_N:
+        check = max(check, PACK_CHECK_3D_MB * (float(n) / PACK_CHECK_3D_N) ** PACK_CHECK_EXPONENT)
     return PACK_BASE_MB + PACK_PER_PARTICLE_MB * float(n) + check
 
 

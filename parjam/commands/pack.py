@@ -227,6 +227,7 @@ def _run(args):
     validate(args)
     from parjam import env
     from parjam.files import manifest, outputs
+    from parjam.pack import stability
     from parjam.study.members import (MemberIncomplete, pack_member, print_table,
                                       rows_from_files, stopped_line)
     from parjam.progress import Progress, Relay
@@ -236,6 +237,7 @@ def _run(args):
     mpi = world.tompi4py()
     protocol = PackingProtocol.from_namespace(args)
     params = manifest.run_parameters(protocol)
+    stability.Settings.from_options()  # bad -stability_* options: refused before any work
     if fits_machine(args, world):  # --dry-run: the estimate only
         return 0
     outputs.check(world, dirs=[("--out", args.out)])

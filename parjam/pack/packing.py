@@ -317,7 +317,8 @@ class Jammer:
             res, cur, escapes, lowest = self.escape(res, first, net, e_stop)
             cycles = 0
             for factor in CYCLE_FACTORS:
-                if cur.stable or res.status == "unjammed" or cur.n_active == 0:
+                if cur.stable or not cur.decided or res.status == "unjammed" \
+                        or cur.n_active == 0:
                     break
                 kept = (self.ff.x.copy(), self.L, res, cur)  # block rows
                 cycles += 1
@@ -330,7 +331,9 @@ class Jammer:
                     self.ff.set_box(self.L)
                     x.copy(self.ff.x)
                 kept[0].destroy()
-        if not cur.stable:
+        if not cur.decided:
+            self._log(f"stability undecided (left as it is, flagged): {cur.why}")
+        elif not cur.stable:
             self._log(f"state still unstable after {escapes} escape(s) and {cycles} compression "
                       f"cycle(s): {cur.n_negative} negative curvature(s), Nc - Nc_iso = "
                       f"{cur.excess}")
@@ -346,7 +349,7 @@ class Jammer:
         from the last one, at most MAX_ESCAPES minimisations.  Returns (MinResult, Curvature,
         escapes, lowest curvature found)."""
         lowest, escapes = np.nan, 0
-        while not cur.stable and escapes < MAX_ESCAPES and cur.n_active > 0:
+        while not cur.stable and cur.decided and escapes < MAX_ESCAPES and cur.n_active > 0:
             direction, lam = stability.softest_direction(self.comm, net, cur)
             lowest = lam if escapes == 0 else lowest
             if direction is None:

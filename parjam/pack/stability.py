@@ -4,18 +4,31 @@ non-rattlers, and the direction to leave a saddle along.
 A state with max|F| below ftol can still be a saddle: near jamming the stress term of Eq. (1),
 (V'(r)/r)(I - n n^T), is negative for repulsive contacts, so a network with too few contacts
 (Nc < Nc_iso, blocked e.g. by a near-contact at a gap of ~1e-10) has modes of negative curvature
-~ -p.  The check counts the eigenvalues of the full dynamical matrix D = M + M' (Eq. (1)) of
-the non-rattlers below -s, where s is a small multiple of its round-off level
-(SHIFT_ULPS * machine epsilon * ||D||_inf): the inertia (Sylvester's law) of an LDL^T
-factorisation of D + s I by MUMPS (parjam.vib.factor), one factorisation, on any number of ranks.
-The d uniform translations are exact zero modes and sit at +s, above the threshold.
+~ -p.  The check asks whether the full dynamical matrix D = M + M' (Eq. (1)) of the non-rattlers
+has an eigenvalue below -s, where s is a small multiple of its round-off level
+(SHIFT_ULPS * machine epsilon * ||D||_inf).  The d uniform translations are exact zero modes
+and are deflated.  A state is *stable* when D has no eigenvalue below -s and it has Nc >= Nc_iso
+contacts among its non-rattlers (a rigid network).
 
-A state is *stable* when no eigenvalue lies below -s and it has Nc >= Nc_iso contacts among
-its non-rattlers (a rigid network).  For an unstable one, ``softest_direction`` returns the
-eigenvector of the lowest non-translational eigenvalue (SLEPc Krylov-Schur with
-shift-and-invert at a target just below it, found from inertias, options prefix
-``stability_``), which the packing protocol (parjam.pack.packing) follows out of the saddle before
-minimising again.
+Two ways to answer, chosen by ``-stability_method`` (``METHODS``):
+
+- ``lanczos`` (default): parjam.vib.lowest's Lanczos test on D, in O(N/P) memory per rank (the
+  matrix and four vectors of this rank's rows).  "Unstable" is certified by a witness vector whose
+  Rayleigh quotient lies below -2 s (Courant-Fischer); "stable" by the Lanczos-polynomial bound:
+  the probability that an eigenvalue below -s was missed is at most ``-stability_lanczos_delta``
+  (1e-10).  Where the test is inconclusive (its step budget ``-stability_lanczos_max_it`` runs
+  out, or the lowest Ritz value converges inside the round-off band [-2 s, 0]), the exact inertia
+  below decides if the matrix has at most ``-stability_exact_max_dof`` rows (EXACT_MAX_DOF);
+  above that the state is *undecided* (n_negative = -1, not stable, never escaped from);
+- ``inertia``: the number of eigenvalues below -s by Sylvester's law, the negative pivots of one
+  MUMPS LDL^T of D + s I (parjam.vib.factor), its factor discarded as it is made.  Exact, but its
+  memory grows as N^1.5 in 3D and its root front sits on one rank (docs/results/stability.md).
+
+For an unstable state, ``softest_direction`` returns the eigenvector of the lowest
+non-translational eigenvalue: the Lanczos test's witness (its Ritz vector, converged to
+``-stability_lanczos_rtol``), or, after an exact count, SLEPc Krylov-Schur with shift-and-invert
+at a target just below it, found from inertias (options prefix ``stability_``).  The packing
+protocol (parjam.pack.packing) follows it out of the saddle before minimising again.
 
 Everything is distributed (issue 18): the state is a parjam.pack.jamnet.JamNetwork (each rank its
 slab of particles and the half-edges of their contacts), D is assembled from those half-edges
@@ -24,36 +37,75 @@ direction stays a distributed vector mapped back onto the owned particles, and t
 searches move the owned particles and sum the energies of their contacts (one allreduce per
 trial).  On one rank the matrix, its norm and every energy are the serial ones bitwise (the
 half-edges come in the serial order, parjam.pack.jamnet), so the protocol takes the same path.
+The Lanczos start vector depends on the particle ids only, so its verdicts do not depend on the
+number of ranks (its sums do, to round-off).
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from parjam import env
+from parjam.errors import ParjamError
+from parjam.logevents import STABILITY_INERTIA, STABILITY_LANCZOS, event
 from parjam.net import potential
 from parjam.pack import jamnet
-from parjam.vib import factor, hessian
+from parjam.vib import factor, hessian, lowest
 from parjam.net.active import max_op, min_op
 from parjam.net.system import pair_separation, wrap
 
 SHIFT_ULPS = 100.0  # s = SHIFT_ULPS * eps_machine * ||D||_inf
 ESCAPE_MAX = 0.05  # escape searches stop at this displacement (in smallest diameters)
 PREFIX = "stability_"
+METHODS = ("lanczos", "inertia")
+#: the exact inertia decides where the Lanczos test is inconclusive up to this many rows of D:
+#: 98,304 rows (N = 32768 in 3D) took 745 MB in the factorisation (docs/results/stability.md)
+EXACT_MAX_DOF = 100000
 
 
 @dataclass
 class Curvature:
     """Result of one stability check of a packing."""
 
-    n_negative: int  # eigenvalues of D (non-rattlers) below -shift; -1: not computed
+    n_negative: int  # eigenvalues of D (non-rattlers) below -shift (Lanczos: those found);
+    #                  -1: not computed, or undecided
     shift: float
     excess: int  # Nc - Nc_iso
     n_active: int
+    method: str = "inertia"  # what decided: "lanczos", "inertia", or "undecided"
+    lowest: float = np.nan  # lowest curvature seen (Lanczos: Ritz value or witness quotient)
+    failure: float = 0.0  # Lanczos "stable": bound on the probability of a missed negative one
+    steps: int = 0  # Lanczos steps
+    why: str = ""  # why the Lanczos test was inconclusive, if it was
+    mode: np.ndarray = field(default=None, repr=False, compare=False)  # witness, rows [lo, hi)
+    mode_residual: float = np.inf  # ||D x - lowest x|| of the unit witness
 
     @property
     def stable(self):
         return self.n_negative == 0 and self.excess >= 0 and self.n_active > 0
+
+    @property
+    def decided(self):
+        return self.n_negative >= 0
+
+
+@dataclass
+class Settings:
+    """The check's options (prefix ``stability_``): -stability_method, -stability_exact_max_dof
+    and the Lanczos test's -stability_lanczos_* (parjam.vib.lowest.Settings)."""
+
+    method: str = "lanczos"
+    exact_max_dof: int = EXACT_MAX_DOF
+    lanczos: lowest.Settings = None
+
+    @classmethod
+    def from_options(cls):
+        opts = env.petsc().Options(PREFIX)
+        method = opts.getString("method", "lanczos")
+        if method not in METHODS:
+            raise ParjamError(f"-{PREFIX}method {method}: choose from {', '.join(METHODS)}")
+        return cls(method, opts.getInt("exact_max_dof", EXACT_MAX_DOF),
+                   lowest.Settings.from_options(PREFIX))
 
 
 @dataclass
@@ -98,19 +150,20 @@ def count_below(comm, H, sigma):
     PETSc = env.petsc()
     if not env.has_mumps():
         return count_below_dense(comm, H, sigma)
-    A = H.matrix(comm, -sigma)
-    ksp = PETSc.KSP().create(comm=comm)
-    try:
-        ksp.setOptionsPrefix(PREFIX)
-        factor.direct_cholesky(ksp)
-        ksp.setOperators(A)
-        ksp.setFromOptions()
-        factor.exact_inertia(ksp.getPC(), inertia_only=True)
-        ksp.setUp()
-        count = factor.negative_pivots(ksp.getPC())
-    finally:
-        ksp.destroy()
-        A.destroy()
+    with event(STABILITY_INERTIA):
+        A = H.matrix(comm, -sigma)
+        ksp = PETSc.KSP().create(comm=comm)
+        try:
+            ksp.setOptionsPrefix(PREFIX)
+            factor.direct_cholesky(ksp)
+            ksp.setOperators(A)
+            ksp.setFromOptions()
+            factor.exact_inertia(ksp.getPC(), inertia_only=True)
+            ksp.setUp()
+            count = factor.negative_pivots(ksp.getPC())
+        finally:
+            ksp.destroy()
+            A.destroy()
     return -1 if count is None else int(count)
 
 
@@ -124,29 +177,60 @@ def count_below_dense(comm, H, sigma):
     return int(np.sum(np.linalg.eigvalsh(D) < sigma))
 
 
-def check(comm, net):
-    """Curvature of the state of JamNetwork ``net`` (collective on comm)."""
+def check(comm, net, settings=None):
+    """Curvature of the state of JamNetwork ``net`` (collective on comm), by the method of
+    ``settings`` (default: from the options database; see the module doc)."""
     if net.n_active == 0:
         return Curvature(0, 0.0, net.excess, 0)
+    cfg = settings or Settings.from_options()
     H = active_hessian(net)
     s = shift_for(H.norm)
-    return Curvature(count_below(comm, H, -s), s, net.excess, net.n_active)
+    if cfg.method == "inertia":
+        return Curvature(count_below(comm, H, -s), s, net.excess, net.n_active)
+    res = lanczos_test(comm, H, s, cfg.lanczos)
+    args = (s, net.excess, net.n_active)
+    info = {"lowest": res.lowest, "steps": res.steps}
+    if res.verdict == lowest.BELOW:
+        return Curvature(res.n_below, *args, "lanczos", mode=res.vector,
+                         mode_residual=res.residual, **info)
+    if res.verdict == lowest.NOT_BELOW:
+        return Curvature(0, *args, "lanczos", failure=res.failure, **info)
+    if H.n * H.d <= cfg.exact_max_dof:
+        return Curvature(count_below(comm, H, -s), *args, "inertia", why=res.why, **info)
+    return Curvature(-1, *args, "undecided", why=res.why, **info)
+
+
+def lanczos_test(comm, H, s, settings=None, want_vector=False):
+    """parjam.vib.lowest's test of the ActiveHessian ``H`` against -s, from the start vector of
+    its particles' ids (collective)."""
+    with event(STABILITY_LANCZOS):
+        A = H.matrix(comm)  # assembled: no setFromOptions (a -mat_type would empty it)
+        try:
+            A.setOptionsPrefix(PREFIX + lowest.OPTIONS)
+            st = settings or lowest.Settings.from_options(PREFIX)
+            start = lowest.start_rows(H.edges.ids, H.d, st.seed)
+            return lowest.lowest_test(A, H.d, s, start, st, want_vector=want_vector)
+        finally:
+            A.destroy()
 
 
 def softest_direction(comm, net, curvature):
     """Displacement of the owned particles (rows of ``net.state``) along the lowest
     non-translational eigenvector of the active Hessian, zero on rattlers, scaled to a largest
-    particle displacement of 1 over all ranks, and its eigenvalue; (None, nan) if SLEPc does
-    not find it.  The target lies below the lowest eigenvalue (from inertias at -s, -10 s,
-    -100 s ...), so the eigenvalue nearest it is the lowest."""
-    H = active_hessian(net)
-    s = curvature.shift
-    target = -s
-    if curvature.n_negative > 0:
-        target = -10.0 * s
-        while count_below(comm, H, target) > 0 and target > -1e6 * max(H.norm, 1.0):
-            target *= 10.0
-    vec, lam = nearest_mode(comm, H, target)
+    particle displacement of 1 over all ranks, and its eigenvalue; (None, nan) if none is
+    found.  After a Lanczos check its witness where that has converged to an eigenvector, else
+    the lowest Ritz vector of a Lanczos run that goes on until it has; after an exact count
+    ``exact_softest``."""
+    cfg = Settings.from_options()
+    if curvature.method != "lanczos":
+        vec, lam = exact_softest(comm, net, curvature)
+    elif curvature.mode is not None and curvature.mode_residual <= max(
+            cfg.lanczos.rtol * abs(curvature.lowest), lowest.FLOOR * curvature.shift):
+        vec, lam = curvature.mode, curvature.lowest
+    else:  # the witness is not yet an eigenvector: converge the lowest Ritz pair
+        res = lanczos_test(comm, active_hessian(net), curvature.shift, cfg.lanczos,
+                           want_vector=True)
+        vec, lam = res.vector, res.lowest
     if vec is None:
         return None, np.nan
     out = np.zeros((len(net.state.ids), net.d))
@@ -154,6 +238,21 @@ def softest_direction(comm, net, curvature):
     norms = np.sqrt(np.einsum("ij,ij->i", out, out))
     top = net.state.comm.allreduce(float(norms.max()) if len(norms) else 0.0, op=max_op())
     return out / top, lam
+
+
+def exact_softest(comm, net, curvature):
+    """The lowest non-translational eigenpair by shift-and-invert (after an exact count): this
+    rank's rows of the vector and the eigenvalue, or (None, nan).  The target lies below the
+    lowest eigenvalue (from inertias at -s, -10 s, -100 s ...), so the eigenvalue nearest it is
+    the lowest."""
+    H = active_hessian(net)
+    s = curvature.shift
+    target = -s
+    if curvature.n_negative > 0:
+        target = -10.0 * s
+        while count_below(comm, H, target) > 0 and target > -1e6 * max(H.norm, 1.0):
+            target *= 10.0
+    return nearest_mode(comm, H, target)
 
 
 def nearest_mode(comm, H, target):
