@@ -10,7 +10,7 @@ drift by more than REBALANCE), plans the ghosts within cutoff = max diameter + s
 ghosts in compiled code (``kernels.slab_pairs``; on one rank, where all ghosts are periodic
 images, the fully periodic cell search ``kernels.cell_pair_lists``, with no halo).  A FIRE
 step then is: the compiled update of the owned particles, ONE ghost refresh (``Halo.pull`` of
-the positions), the compiled forces and partial sums, ONE allreduce of the seven sums
+the positions), the compiled forces and partial sums, ONE allreduce of the step's sums
 (``parjam_fire_step``).
 
 Ghost pairs are computed on both sides: a pair of particles on two ranks is listed by both, and
@@ -18,10 +18,10 @@ each adds the force to its own particle only (no second exchange to push ghost f
 The pairs are listed in global (i, j) order and the separation is the minimum image of the
 difference of the continuous (never re-wrapped) positions, exactly as the serial kernel does,
 so the force on a particle is bitwise independent of the number of ranks and of when the list
-was rebuilt; sums over particles (energy, F.v, ...) differ across decompositions in round-off
-only.  ``resync`` redoes the decomposition from the positions alone; parjam.pack.fire calls it
-where it offers checkpoint snapshots, so a run resumed from one meets the same decomposition
-(hence the same sums, bitwise) as the run that wrote it.
+was rebuilt.  The sums over particles (energy, F.v, |F|^2, |v|^2) are exact (fixed-point
+accumulators, parjam.net.exactsum, reduced as integers and rounded once) and the maxima are
+exact anyway: they too are the same bits on any number of ranks and for any decomposition, so
+FIRE's trajectory is.
 
 The positions are kept unwrapped between rebuilds (a particle's coordinates change only by
 FIRE's updates): the wrapped copy a rebuild needs for ownership and search is temporary.
@@ -39,7 +39,7 @@ REBALANCE = 1.10  # new slab bounds when the most loaded rank holds 10 % more th
 
 
 class FireSums:
-    """The global sums of one fused FIRE step (from the 7-number buffer of _kernels.c)."""
+    """The global sums of one fused FIRE step (kernels.fire_sums of the reduced buffer)."""
 
     __slots__ = ("energy", "power", "f2", "v2", "fmax", "vmax", "disp")
 
@@ -66,6 +66,7 @@ class SlabEngine:
         dmax = float(np.max(diam)) if len(diam) else 0.0
         self.cut = self.comm.allreduce(dmax, op=_mpi_max()) + self.skin
         self.n_rebuilds = self.n_migrated = 0
+        self.acc = np.zeros(kernels.FIRE_ACC, dtype=np.int64)  # the step's sums (exact)
         self.sums = np.zeros(kernels.N_SUMS)
         v = np.zeros_like(x) if v is None else np.array(v, dtype=np.float64)
         self.domain = SlabDomain.balanced(self.comm, self.L, x)
@@ -163,7 +164,7 @@ class SlabEngine:
         self.f = np.zeros((n_own, d))
         self.v = np.ascontiguousarray(self.v)
         self.kernel = kernels.FireKernel(self.xu, self.v, self.f, self.ref, self.pi, self.pj,
-                                         self.pos, self.pdiam, self.sums)
+                                         self.pos, self.pdiam, self.acc)
         self.pos[n_own:] = g_pos
         self.fresh = True
 
@@ -192,13 +193,6 @@ class SlabEngine:
             self._refresh()
         self._call(kernels.FIRE_FORCES, 0.0, False, 0.0, 1.0, 0.0)
         return self._reduce()
-
-    def resync(self):
-        """The decomposition redone from the positions alone (new bounds, migration, ghosts,
-        pairs) and the forces and sums recomputed on it (collective): after it the state
-        depends on positions and velocities only, as after a restart from them."""
-        self.rebuild(rebalance=True)
-        return self._forces()
 
     def step(self, dt, reset, mix_v, mix_f, last):
         """One FIRE step (see ``parjam_fire_step``): if ``reset`` step half back and zero v;
@@ -235,14 +229,13 @@ class SlabEngine:
                                self.eps, 0, self.n_own)
 
     def _reduce(self):
-        """The FIRE sums over the ranks: one allreduce of the 7-number buffer (sums of the first
-        four, maxima of the rest)."""
-        if self.size == 1:
-            return FireSums(self.sums)
-        out = np.empty_like(self.sums)
-        with event(ALLREDUCE):
-            self.comm.Allreduce(self.sums, out, op=sum_max_op())
-        return FireSums(out)
+        """The FIRE sums over the ranks: one allreduce of the kernel's buffer (integer sums of
+        the exact accumulators, maxima of the rest), rounded to doubles once: the same bits on
+        any number of ranks."""
+        if self.size > 1:
+            with event(ALLREDUCE):
+                self.comm.Allreduce(MPI_IN_PLACE(), self.acc, op=sum_max_op())
+        return FireSums(kernels.fire_sums(self.acc, self.sums))
 
     # --- hand-over to row blocks (lazy gathers) ------------------------------------------------
     def to_blocks(self, ranges, values):
@@ -259,20 +252,29 @@ def _mpi_max():
     return MPI.MAX
 
 
+def MPI_IN_PLACE():
+    from mpi4py import MPI
+
+    return MPI.IN_PLACE
+
+
 _OP = None
 
 
 def sum_max_op():
-    """MPI op on the FIRE buffer: sums of entries 0-3, maxima of entries 4-6 (commutative)."""
+    """MPI op on the FIRE buffer (int64, kernels.FIRE_ACC): integer sums of the four exact
+    accumulators, maxima of the last three entries (bits of non-negative doubles, which order
+    as their values).  Exact, so commutative and associative: any reduction tree gives the
+    same result."""
     global _OP
     if _OP is None:
         from mpi4py import MPI
 
         def combine(inbuf, inoutbuf, datatype):
-            a = np.frombuffer(inbuf, dtype=np.float64)
-            b = np.frombuffer(inoutbuf, dtype=np.float64)
-            b[:4] += a[:4]
-            np.maximum(b[4:], a[4:], out=b[4:])
+            a = np.frombuffer(inbuf, dtype=np.int64)
+            b = np.frombuffer(inoutbuf, dtype=np.int64)
+            b[:-3] += a[:-3]
+            np.maximum(b[-3:], a[-3:], out=b[-3:])
 
         _OP = MPI.Op.Create(combine, commute=True)
     return _OP
