@@ -283,12 +283,14 @@ static double max_displacement2(int64_t nown, int d, const double *x, const doub
 
 enum { FIRE_UPDATE = 1, FIRE_FORCES = 2 };
 
-/* One FIRE step on the nown owned particles (x, v, f: nown x d, C order).
+/* One FIRE step on the nown owned particles (x, v, f: nall x d, C order, the owned rows first;
+ * the nall - nown rows after them are other ranks' particles, ghosts, updated alike).
  *
  * FIRE_UPDATE (Bitzek et al., PRL 97, 170201 (2006); semi-implicit Euler as in Guenole et al.,
  * Comput. Mater. Sci. 175, 109584 (2020)), with the scalars the caller derived from the last
  * reduction:  if ``reset`` (P <= 0): x += back v, v = 0;  then v += dt F;  v = mix_f F + mix_v v
- * (mix_v = 1 - a, mix_f = a |v|/|F|);  x += dt v.  When stale2 > 0 and some particle has moved
+ * (mix_v = 1 - a, mix_f = a |v|/|F|);  x += dt v, on all nall rows: a ghost row given its owner's
+ * x, v and F moves exactly as the owner moves it.  When stale2 > 0 and some particle has moved
  * by sqrt(stale2) or more since ``ref`` (the neighbour list's positions), returns 1 without
  * computing forces: the caller rebuilds the list and calls again with FIRE_FORCES alone.
  *
@@ -309,13 +311,13 @@ static ALWAYS_INLINE int64_t max_bits(double x)
     return b;
 }
 
-int parjam_fire_step(int mode, int64_t nown, int d, double *x, double *v, double *f,
+int parjam_fire_step(int mode, int64_t nown, int64_t nall, int d, double *x, double *v, double *f,
                      const double *ref, double L, double dt, int reset, double back, double mix_v,
                      double mix_f, double stale2, int64_t npairs, const int64_t *pi,
                      const int64_t *pj, const double *pos, const double *diam, double alpha,
                      double eps, int64_t lo, int64_t hi, int64_t *acc)
 {
-    const int64_t n = nown * d;
+    const int64_t n = nall * d;
     if (mode & FIRE_UPDATE) {
         for (int64_t k = 0; k < n; k++) {
             double vk = v[k];

@@ -128,7 +128,8 @@ def library():
     s = lib.parjam_fire_step
     s.restype = ctypes.c_int
     dbl = ctypes.c_double
-    s.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int, w64, w64, w64, f64, dbl, dbl,
+    s.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_int, w64, w64, w64, f64,
+                  dbl, dbl,
                   ctypes.c_int, dbl, dbl, dbl, dbl, ctypes.c_int64, i64, i64, f64, f64, dbl, dbl,
                   ctypes.c_int64, ctypes.c_int64, wi64]
     xa = lib.parjam_exact_add
@@ -192,7 +193,10 @@ def pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out, acc=None):
     is summed as the C loop sums it: first as the upper end of its pairs (lower partners
     ascending), then as the lower end (upper partners ascending)."""
     rij = pair_separation(pos[pi], pos[pj], L)
-    r = np.sqrt(np.einsum("ij,ij->i", rij, rij))
+    r2 = rij[:, 0] * rij[:, 0]
+    for a in range(1, pos.shape[1]):  # the C loop's order over the components
+        r2 = r2 + rij[:, a] * rij[:, a]
+    r = np.sqrt(r2)
     sigma = 0.5 * (diam[pi] + diam[pj])
     c = r < sigma
     i, j, rij, r, sigma = pi[c], pj[c], rij[c], r[c], sigma[c]
@@ -211,14 +215,17 @@ def pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out, acc=None):
 
 
 def fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi, pj, pos, diam,
-              alpha, eps, lo, hi, acc):
-    """One fused FIRE step on the owned particles (x, v, f, ref: (n_own, d) C arrays); see
-    ``parjam_fire_step`` in _kernels.c for the modes and the buffer ``acc`` (FIRE_ACC int64;
-    ``fire_sums`` reads it).  Returns 1 when the update found the neighbour list stale (no
-    forces computed), else 0."""
+              alpha, eps, lo, hi, acc, nown=None):
+    """One fused FIRE step on the owned particles (x, v, f: (n_all, d) C arrays whose first
+    ``nown`` rows (default all) are owned and the rest ghosts, updated alike; ref: (nown, d));
+    see ``parjam_fire_step`` in _kernels.c for the modes and the buffer ``acc`` (FIRE_ACC
+    int64; ``fire_sums`` reads it).  Returns 1 when the update found the neighbour list stale
+    (no forces computed), else 0."""
+    nown = len(x) if nown is None else nown
     lib = library()
     if lib is not None:
-        return lib.parjam_fire_step(mode, len(x), x.shape[1], x, v, f, ref, L, dt, int(reset),
+        return lib.parjam_fire_step(mode, nown, len(x), x.shape[1], x, v, f, ref, L, dt,
+                                    int(reset),
                                     back, mix_v, mix_f, stale2, len(pi), pi, pj, pos, diam,
                                     alpha, eps, lo, hi, acc)
     _fallback()
@@ -229,11 +236,12 @@ def fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi, 
         v += dt * f
         v[:] = mix_f * f + mix_v * v
         x += dt * v
-        if stale2 > 0.0 and _max_disp2(x, ref, L) >= stale2:
+        if stale2 > 0.0 and _max_disp2(x[:nown], ref, L) >= stale2:
             return 1
     if mode & FIRE_FORCES:
         n = exactsum.ACC_LEN
         acc[:] = 0
+        x, v, f = x[:nown], v[:nown], f[:nown]
         pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, f, acc[:n])
         p, f2, v2 = (np.zeros(len(x)) for _ in range(3))
         for a in range(x.shape[1]):  # the C loop's order over the components
@@ -262,12 +270,13 @@ def fire_sums(acc, out=None):
 
 
 class FireKernel:
-    """``fire_step`` bound to its arrays (x, v, f, ref: (n_own, d); pi, pj; pos; diam; acc):
-    their addresses are taken once, so a call passes scalars only (ctypes' per-array checks cost
-    ~40 us a step, a tenth of a step at N = 4096).  The arrays must stay alive and in place
-    while it is used (ForceField keeps one per neighbour list and pair of Vecs)."""
+    """``fire_step`` bound to its arrays (x, v, f: (n_all, d), the first ``nown`` rows owned;
+    ref: (nown, d); pi, pj; pos; diam; acc): their addresses are taken once, so a call passes
+    scalars only (ctypes' per-array checks cost ~40 us a step, a tenth of a step at
+    N = 4096).  The arrays must stay alive and in place while it is used (the engine keeps one
+    per neighbour list)."""
 
-    def __init__(self, x, v, f, ref, pi, pj, pos, diam, acc):
+    def __init__(self, x, v, f, ref, pi, pj, pos, diam, acc, nown=None):
         self.arrays = (x, v, f, ref, pi, pj, pos, diam, acc)
         kinds = (np.float64,) * 4 + (np.int64,) * 2 + (np.float64,) * 2 + (np.int64,)
         for a, kind in zip(self.arrays, kinds):
@@ -278,14 +287,15 @@ class FireKernel:
         for a in (x, v, f, acc):
             if not a.flags.writeable:
                 raise ValueError("FireKernel writes x, v, f and acc")
-        self.nown, self.d, self.npairs = len(x), x.shape[1], len(pi)
+        self.nall, self.d, self.npairs = len(x), x.shape[1], len(pi)
+        self.nown = self.nall if nown is None else int(nown)
         lib = library()
         self.fn = None
         if lib is not None:
             fn = lib["parjam_fire_step"]  # a new function object: its own argtypes
             vp, dbl, i64 = ctypes.c_void_p, ctypes.c_double, ctypes.c_int64
             fn.restype = ctypes.c_int
-            fn.argtypes = [ctypes.c_int, i64, ctypes.c_int, vp, vp, vp, vp, dbl, dbl,
+            fn.argtypes = [ctypes.c_int, i64, i64, ctypes.c_int, vp, vp, vp, vp, dbl, dbl,
                            ctypes.c_int, dbl, dbl, dbl, dbl, i64, vp, vp, vp, vp, dbl, dbl, i64,
                            i64, vp]
             self.fn = fn
@@ -295,9 +305,10 @@ class FireKernel:
         if self.fn is None:
             x, v, f, ref, pi, pj, pos, diam, acc = self.arrays
             return fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi,
-                             pj, pos, diam, alpha, eps, lo, hi, acc)
+                             pj, pos, diam, alpha, eps, lo, hi, acc, self.nown)
         x, v, f, ref, pi, pj, pos, diam, acc = self.ptr
-        return self.fn(mode, self.nown, self.d, x, v, f, ref, L, dt, 1 if reset else 0, back,
+        return self.fn(mode, self.nown, self.nall, self.d, x, v, f, ref, L, dt,
+                       1 if reset else 0, back,
                        mix_v, mix_f, stale2, self.npairs, pi, pj, pos, diam, alpha, eps, lo, hi,
                        acc)
 

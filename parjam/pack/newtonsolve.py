@@ -59,6 +59,7 @@ class RootFactor:
         self.mpi = ff.mpi
         self.root = self.mpi.Get_rank() == 0
         self.ksp = self.mat = self.pattern = None
+        self.ksp_type = None  # the KSP's type (rank 0's, on every rank)
         self.rhs = self.sol = None
         self.counts = None  # scalar rows per rank
 
@@ -68,11 +69,11 @@ class RootFactor:
         with event(ASSEMBLY):
             indptr, cols, vals = ff.contact_rows(mu)
             got = self._gather_csr(indptr, cols, vals)
-        neg = None
-        if self.root:
-            with event(FACTOR):
-                neg = self._factor_root(ff, *got)
-        return self.mpi.bcast(neg, root=0)
+        with event(FACTOR):  # on rank 0; the other ranks wait for its inertia
+            neg = self._factor_root(ff, *got) if self.root else None
+            neg, self.ksp_type = self.mpi.bcast(
+                (neg, self.ksp.getType() if self.root else None), root=0)
+            return neg
 
     def _gather_csr(self, indptr, cols, vals):
         lengths = np.diff(indptr).astype(np.int64)
@@ -133,10 +134,6 @@ class RootFactor:
         reason = self.mpi.bcast(reason, root=0)
         ff.local(dx)[:] = _scatterv(self.mpi, out, self.counts).reshape(-1, d)
         return reason
-
-    @property
-    def ksp_type(self):
-        return self.ksp.getType() if self.ksp is not None else None
 
     def destroy(self):
         for obj in (self.ksp, self.mat, self.rhs, self.sol):
