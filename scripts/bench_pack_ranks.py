@@ -80,7 +80,8 @@ def worker(args):
                                       for k in EVENTS},
                "event_counts": cnt,
                "kernel_imbalance": max(kern) / (sum(kern) / len(kern)) if sum(kern) else 1.0,
-               "energy": res.energy}
+               "energy": res.energy, "tree": os.path.dirname(os.path.dirname(
+                   os.path.abspath(logevents.__file__)))}
         print("RESULT " + json.dumps(out), flush=True)
     ff.destroy()
 

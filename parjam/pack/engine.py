@@ -127,10 +127,11 @@ class SlabEngine:
         xw = self.domain.wrap(self.xu)
         if self.size == 1 and self._plan_periodic(xw, cap):
             return
-        halo = self.domain.halo(xw, self.ids, self.cut)
-        # the ghosts' positions, velocities and diameters in one exchange
+        # the ghost plan, and the ghosts' positions, velocities and diameters, in one exchange
         with event(HALO) if self.size > 1 else contextlib.nullcontext():  # one rank: a copy
-            got = halo.pull(np.concatenate([self.xu, self.v, self.diam[:, None]], axis=1))
+            halo = self.domain.halo(xw, self.ids, self.cut,
+                                    np.concatenate([self.xu, self.v, self.diam[:, None]], axis=1))
+        got = halo.values
         src = np.repeat(np.arange(self.size), halo.recv_counts)[halo.order]
         image = src == self.rank  # own particles seen across the periodic boundary
         foreign = np.flatnonzero(~image)
