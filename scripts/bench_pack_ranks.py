@@ -58,6 +58,8 @@ def worker(args):
     ff.set_positions(pack.pos)
     del pack
     fire(ff, 0.0, params=FireParams(max_steps=args.warm))
+    if args.steady:
+        return steady(args, ff, mpi, n)
     PETSc.Log.begin()
     names = [EVENTS[k] for k in EVENTS]
     before = {n: logevents.event(n).getPerfInfo()["time"] for n in names}
@@ -86,6 +88,32 @@ def worker(args):
     ff.destroy()
 
 
+def steady(args, ff, mpi, n):
+    """--steady: each of --steps engine steps timed alone (a fixed dt = 0.01 and mixing, as
+    FIRE's steady downhill phase), on rank 0 (the steps are synchronised by their allreduce):
+    the low percentiles are the steps no other job interrupted, even on a loaded machine."""
+    import numpy as np
+
+    eng = ff.start_engine()
+    s = eng.start()
+    times = np.empty(args.steps)
+    for k in range(args.steps):
+        t = time.perf_counter()
+        s = eng.step(0.01, False, 0.99, 0.01, s)
+        times[k] = time.perf_counter() - t
+    ff.stop_engine()
+    if mpi.Get_rank() == 0:
+        q = np.percentile(times, [10, 50]) * 1e3
+        out = {"n": n, "dim": args.dim, "ranks": mpi.Get_size(), "steps": args.steps,
+               "steady": True, "ms_per_step": float(q[0]), "p50_ms": float(q[1]),
+               "min_ms": float(times.min() * 1e3), "mean_ms": float(times.mean() * 1e3),
+               "cpu_ms_per_step": float("nan"), "energy": s.energy,
+               "events_ms_per_step": {k: float("nan") for k in EVENTS},
+               "kernel_imbalance": float("nan")}
+        print("RESULT " + json.dumps(out), flush=True)
+    ff.destroy()
+
+
 def old_tree(rev):
     """A directory holding ``rev`` of this repository (or the path itself)."""
     if os.path.isdir(rev):
@@ -101,7 +129,8 @@ def run_one(tree, ranks, args, n):
     mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--n", str(n),
            "--dim", str(args.dim), "--phi", str(args.phi), "--steps", str(args.steps),
-           "--warm", str(args.warm), "--seed", str(args.seed)]
+           "--warm", str(args.warm), "--seed", str(args.seed)] + (["--steady"] if args.steady
+                                                                   else [])
     if ranks > 1:
         cmd = mpirun + ["-n", str(ranks)] + cmd
     env = dict(os.environ, PYTHONPATH=tree, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
@@ -131,6 +160,9 @@ def main():
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--old", default=None, help="git revision or checkout to compare with")
     ap.add_argument("--json", default=None, help="write all runs and medians here")
+    ap.add_argument("--steady", action="store_true",
+                    help="time each step alone at a fixed dt and report its 10th percentile "
+                         "(the steps no other job interrupted) instead of FIRE's mean")
     args = ap.parse_args()
     if args.worker:
         worker(args)

@@ -97,7 +97,7 @@ class SlabEngine:
                     dest = self.domain.owner(self.xu)
                     leaving = np.count_nonzero(dest != self.rank)
                     counts = np.bincount(dest, minlength=self.size).astype(np.int64)
-                    self.comm.Allreduce(MPI_IN_PLACE(), counts, op=_mpi_sum())
+                    self.comm.Allreduce(_mpi_in_place(), counts, op=_mpi_sum())
                     if rebalance or counts.max() > REBALANCE * counts.mean():
                         self.domain = SlabDomain.balanced(self.comm, self.L, self.xu)
                     ids, fl = self._migrate(self.xu, self.ids, self.v, self.diam)
@@ -264,7 +264,7 @@ class SlabEngine:
             with event(HALO):
                 MPI.Request.Waitall(reqs)
                 np.take(self.recvbuf, self.unpack, axis=0, out=self.f_all[self.n_own:])
-        return FireSums(kernels.fire_sums(self.acc, self.sums))
+        return FireSums(self.kernel.sums(self.sums))
 
     # --- hand-over to row blocks (lazy gathers) ------------------------------------------------
     def to_blocks(self, ranges, values):
@@ -287,7 +287,7 @@ def _mpi_sum():
     return MPI.SUM
 
 
-def MPI_IN_PLACE():
+def _mpi_in_place():
     from mpi4py import MPI
 
     return MPI.IN_PLACE

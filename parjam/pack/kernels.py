@@ -300,6 +300,10 @@ class FireKernel:
                            i64, vp]
             self.fn = fn
             self.ptr = [a.ctypes.data for a in self.arrays]
+            fs = lib["parjam_fire_sums"]
+            fs.restype = None
+            fs.argtypes = [vp, vp]
+            self.fs = fs
 
     def __call__(self, mode, L, dt, reset, back, mix_v, mix_f, stale2, alpha, eps, lo, hi):
         if self.fn is None:
@@ -311,6 +315,14 @@ class FireKernel:
                        1 if reset else 0, back,
                        mix_v, mix_f, stale2, self.npairs, pi, pj, pos, diam, alpha, eps, lo, hi,
                        acc)
+
+    def sums(self, out):
+        """``fire_sums`` of the bound buffer into ``out`` (N_SUMS float64, C), without
+        ctypes' per-call array checks."""
+        if self.fn is None:
+            return fire_sums(self.arrays[8], out)
+        self.fs(self.ptr[8], out.ctypes.data)
+        return out
 
 
 def _max_disp2(x, ref, L):
