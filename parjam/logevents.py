@@ -2,9 +2,11 @@
 packing spends its time (next to the stages of parjam.pack.packing.log_stage):
 
   parjam: force kernel      the compiled pair kernel / fused FIRE step (parjam.pack.kernels)
-  parjam: FIRE allreduce    the one reduction of a fused FIRE step
+  parjam: FIRE allreduce    the one reduction of a fused FIRE step (the step's synchronisation)
   parjam: nbr rebuild       a Verlet-list rebuild (the engine's: migration, ghost plan, search)
-  parjam: halo exchange     the ghost refresh before a force evaluation (one per FIRE step)
+  parjam: halo exchange     the engine's ghosts: their forces sent before the allreduce and
+                            received after it (two per FIRE step), their positions and
+                            velocities pulled at a rebuild; Newton's ghost positions
   parjam: migration         the engine's hand-over of particles to the slabs that own them
   parjam: Newton assembly   the Hessian's assembly for a Newton step
   parjam: Newton factor     the factorisation (or preconditioner set-up) of a Newton step

@@ -90,7 +90,8 @@ class Halo:
         self.order = order  # ghost k is received row order[k] (received rows sorted by id)
         self.ids = ids
         self.shift = shift
-        self.x = None
+        self.x = None  # the ghosts' positions (unwrapped along axis 0)
+        self.values = None  # per-particle values that came with the plan (``halo(values=)``)
 
     @property
     def n(self):
@@ -180,23 +181,29 @@ class SlabDomain:
     def migrate(self, x, ids, fields=None):
         """Send every row to the rank owning its (wrapped) position; returns (x, ids, fields)
         of this rank's rows, sorted by global id.  ``fields`` maps names to per-particle arrays
-        (the same names on every rank)."""
+        (the same names on every rank).  The ids, positions and float64 fields travel in one
+        exchange (the ids' bits in a float64 column), other fields in one each."""
         x = self.wrap(np.asarray(x, dtype=np.float64))
         ids = np.asarray(ids, dtype=np.int64)
-        fields = dict(fields or {})
+        fields = {k: np.asarray(v) for k, v in (fields or {}).items()}
         dest = self.owner(x)
         order = np.argsort(dest, kind="stable")
         counts = np.bincount(dest, minlength=self.size)
-        ids_new, rcounts = _exchange(self.comm, ids[order], counts)
-        x_new = _exchange_known(self.comm, x[order], counts, rcounts)
-        out = {k: _exchange_known(self.comm, np.asarray(fields[k])[order], counts, rcounts)
-               for k in sorted(fields)}
+        floats = [k for k in sorted(fields) if fields[k].dtype == np.float64]
+        rows, cols = pack_columns([ids, x] + [fields[k] for k in floats], len(ids))
+        got, rcounts = _exchange(self.comm, rows[order], counts)
+        ids_new, x_new, *fl = unpack_columns(got, cols)
+        out = dict(zip(floats, fl))
+        out.update({k: _exchange_known(self.comm, fields[k][order], counts, rcounts)
+                    for k in sorted(fields) if k not in out})
         keep = np.argsort(ids_new, kind="stable")
         return x_new[keep], ids_new[keep], {k: v[keep] for k, v in out.items()}
 
-    def halo(self, x_owned, ids, width):
+    def halo(self, x_owned, ids, width, values=None):
         """The ghost plan for the owned rows (positions ``x_owned``, global ``ids``): every
-        particle image within ``width`` of this rank's slab along axis 0 (collective)."""
+        particle image within ``width`` of this rank's slab along axis 0 (collective, one
+        exchange).  Per-particle float64 ``values`` of the owned rows, if given, come along in
+        the same exchange: ``Halo.values`` are the ghosts' (as ``pull`` would give them)."""
         x_owned = np.asarray(x_owned, dtype=np.float64)
         Lx = self.L[0]
         if not 0 <= width < Lx / 2:
@@ -220,13 +227,18 @@ class SlabDomain:
         order = np.argsort(dest, kind="stable")
         idx, dest, shift = idx[order], dest[order], shift[order]
         counts = np.bincount(dest, minlength=self.size).astype(np.int64)
-        g_ids, rcounts = _exchange(self.comm, np.asarray(ids, dtype=np.int64)[idx], counts)
-        g_s = _exchange_known(self.comm, shift, counts, rcounts)
+        parts = [np.asarray(ids, dtype=np.int64)[idx], shift, x_owned[idx]]
+        if values is not None:
+            parts.append(np.asarray(values, dtype=np.float64)[idx])
+        rows, cols = pack_columns(parts, len(idx))
+        got, rcounts = _exchange(self.comm, rows, counts)
+        g_ids, g_s, g_x, *g_values = unpack_columns(got, cols)
         perm = np.lexsort((g_s, g_ids))
         shifts = np.zeros((len(perm), x_owned.shape[1]))
         shifts[:, 0] = g_s[perm]
         h = Halo(self.comm, idx, counts, rcounts, perm, g_ids[perm], shifts)
-        h.x = h.positions(x_owned)
+        h.x = g_x[perm] + shifts  # = h.positions(x_owned), without a second exchange
+        h.values = g_values[0][perm] if g_values else None
         return h
 
     def separation(self, xa, xb):
@@ -253,6 +265,35 @@ class SlabDomain:
         pairs = cKDTree(pts, boxsize=box).query_pairs(cutoff, output_type="ndarray")
         pairs = pairs[pairs[:, 0] < n_own].astype(np.int64)
         return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def pack_columns(parts, n):
+    """Per-row arrays (int64 ids or float64 values, any trailing shape) side by side in one
+    float64 array of n rows (an int64 column carried as its bits); returns it and the layout
+    for ``unpack_columns``."""
+    cols, layout = [], []
+    for a in parts:
+        a = np.asarray(a)
+        flat = np.ascontiguousarray(a).reshape(n, int(np.prod(a.shape[1:], dtype=np.int64)))
+        if a.dtype == np.int64:
+            flat = flat.view(np.float64)
+        elif a.dtype != np.float64:
+            raise TypeError(f"pack_columns takes int64 or float64 arrays, not {a.dtype}")
+        cols.append(flat)
+        layout.append((a.dtype, a.shape[1:], flat.shape[1]))
+    return np.concatenate(cols, axis=1) if cols else np.empty((n, 0)), layout
+
+
+def unpack_columns(rows, layout):
+    """The arrays ``pack_columns`` put side by side, from (any selection of) its rows."""
+    out, at = [], 0
+    for dtype, shape, width in layout:
+        block = np.ascontiguousarray(rows[:, at:at + width])
+        if dtype == np.int64:
+            block = block.view(np.int64)
+        out.append(block.reshape((len(rows),) + tuple(shape)))
+        at += width
+    return out
 
 
 def send_rows(comm, dest, ids, fields=None):

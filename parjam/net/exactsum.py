@@ -16,7 +16,19 @@ wholly in its block and hands over its share of the at most two leaves that cros
 (O(log chunk + BLOCK) numbers); one allgather of these lets the owners add those chunks' nodes
 in the tree's order.  The chunk sums are then added in turn along the ranks (one number passed
 from rank to rank), as numpy adds them, and the total broadcast.
+
+Exact sums (``partial``, ``value``, ``totals``): where no serial order is to be reproduced, a sum
+over particles spread over ranks is made independent of the split by summing exactly.  Each rank
+adds its values into an exact fixed-point accumulator (ACC_LEN int64: 32-bit chunks covering
+every finite double, and counts of NaN and infinities; the compiled ``parjam_exact_add`` of
+parjam/pack/_kernels.c, or a numpy fallback with the same result), the accumulators are summed
+as integers (one MPI_SUM allreduce: exact, in any order), and the total is rounded once to the
+nearest double, ties to even: the value math.fsum gives on all the values at once.  The packing
+engine's FIRE sums, Newton's energy and the observables of every state are taken this way, so
+a packing is the same bits on any number of ranks.
 """
+
+import math
 
 import numpy as np
 
@@ -112,3 +124,90 @@ def total(comm, values, lo, n):
     if rank < size - 1:
         mpi.send(running, dest=rank + 1, tag=77)
     return mpi.bcast(running, root=size - 1)
+
+
+# --- exact sums ---------------------------------------------------------------------------------
+CHUNKS = 66  # 32-bit chunks (_kernels.c XACC_CHUNKS): chunk k weighs 2^(32 k - 1074)
+NAN, PINF, MINF = 66, 67, 68  # counts of NaN, +inf, -inf
+ACC_LEN = 69  # int64 per accumulator (XACC_LEN)
+
+
+def _compiled():
+    """The compiled accumulator's library (parjam.pack.kernels), or None: the numpy fallback."""
+    from parjam.pack import kernels  # the compiled library lives with the packing kernels
+
+    return kernels.library()
+
+
+def normalise(acc):
+    """Carries propagated in place (every chunk but the last into [0, 2^32)): the unique form
+    of an accumulator, which sums over ranks without overflow."""
+    for k in range(CHUNKS - 1):
+        c = acc[k] >> 32
+        acc[k] &= 0xFFFFFFFF
+        acc[k + 1] += c
+    return acc
+
+
+def partial(values, acc=None):
+    """The exact sum of ``values`` (any shape, float64) as a normalised accumulator (added to
+    ``acc`` if given, an int64 array of ACC_LEN)."""
+    v = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
+    acc = np.zeros(ACC_LEN, dtype=np.int64) if acc is None else acc
+    lib = _compiled()
+    if lib is not None:
+        lib.parjam_exact_add(len(v), v, 1, acc)
+        return acc
+    acc[NAN] += np.count_nonzero(np.isnan(v))
+    acc[PINF] += np.count_nonzero(v == np.inf)
+    acc[MINF] += np.count_nonzero(v == -np.inf)
+    v = v[np.isfinite(v) & (v != 0.0)]
+    m, e = np.frexp(v)  # v = m 2^e, 1/2 <= |m| < 1
+    a = np.abs(m * 2.0 ** 53).astype(np.int64)  # v = +-a 2^(e - 53), a < 2^53
+    sh = e.astype(np.int64) - 53 + 1074  # in units of 2^-1074
+    sub = sh < 0  # subnormals: a is a multiple of 2^-sh
+    a[sub] >>= -sh[sub]
+    sh[sub] = 0
+    idx, s = sh >> 5, sh & 31
+    sign = np.where(v < 0, -1, 1)
+    parts = ((a & ((1 << (32 - s)) - 1)) << s, (a >> (32 - s)) & 0xFFFFFFFF,
+             (a >> (32 - s)) >> 32)
+    for k, part in enumerate(parts):
+        np.add.at(acc, idx + k, sign * part)
+    return normalise(acc)
+
+
+def value(acc):
+    """An accumulator's sum rounded to the nearest double, ties to even (NaN if a NaN or both
+    infinities were added, else +-inf if one was)."""
+    acc = np.ascontiguousarray(acc, dtype=np.int64)
+    lib = _compiled()
+    if lib is not None:
+        return float(lib.parjam_exact_value(acc))
+    if acc[NAN] or (acc[PINF] and acc[MINF]):
+        return math.nan
+    if acc[PINF] or acc[MINF]:
+        return math.inf if acc[PINF] else -math.inf
+    total = sum(int(c) << (32 * k) for k, c in enumerate(acc[:CHUNKS]))
+    try:
+        return total / (1 << 1074)  # Python's int division is correctly rounded
+    except OverflowError:
+        return math.inf if total > 0 else -math.inf
+
+
+def totals(comm, *arrays):
+    """math.fsum of each of ``arrays`` over all ranks of ``comm`` (each rank gives its values;
+    one allreduce for all of them), as floats: the same bits however the values are split
+    over ranks (collective; ``comm`` mpi4py, petsc4py or None for one process)."""
+    accs = np.stack([partial(a) for a in arrays]) if arrays else np.zeros((0, ACC_LEN), np.int64)
+    if comm is not None and comm.Get_size() > 1:
+        mpi = comm.tompi4py() if hasattr(comm, "tompi4py") else comm
+        from mpi4py import MPI
+
+        mpi.Allreduce(MPI.IN_PLACE, accs, op=MPI.SUM)
+    return [value(a) for a in accs]
+
+
+def fsum(comm, values):
+    """math.fsum of ``values`` over all ranks of ``comm`` (``totals`` of one array)."""
+    return totals(comm, values)[0]

@@ -12,16 +12,143 @@
  * velocity/position update of the owned particles, the forces at the new positions, and the
  * partial sums that the next step's decisions need (energy, F.v, |F|^2, |v|^2, max |F_i|^2,
  * max |v_i|^2, max displacement^2 since the neighbour list was built), which the caller reduces
- * over the ranks in one allreduce.
+ * over the ranks in one allreduce.  The sums are exact (parjam_exact_*: integer accumulators,
+ * rounded once at the end), so they, and with them FIRE's trajectory, are the same bits on any
+ * number of ranks.
  */
 #include <math.h>
 #include <stdint.h>
+#include <string.h>
 
 #if defined(__GNUC__)
 #define ALWAYS_INLINE inline __attribute__((always_inline))
 #else
 #define ALWAYS_INLINE inline
 #endif
+
+
+/* ---- Exact sums (parjam.net.exactsum): a fixed-point accumulator of every finite double ----
+ *
+ * A double is m 2^(E - 1074) with an integer mantissa m < 2^53 and E = max(biased exponent, 1)
+ * - 1 in 0..2045.  The accumulator holds the exact sum as int64 chunks of 32 bits, chunk k
+ * weighing 2^(32 k - 1074) (XACC_CHUNKS of them, the last one signed and open-ended), and
+ * counts of NaN, +inf and -inf.  Adding a value adds its two 32-bit-aligned pieces to two
+ * chunks (no branch on the sign); the chunks have room for XACC_SLACK additions before the
+ * carries must be propagated (``xacc_norm``: every chunk but the last into [0, 2^32)).  Once
+ * normalised the representation is unique, so the sum of the ranks' accumulators is an integer
+ * sum (MPI_SUM on int64: exact, in any order) and its rounding to a double
+ * (``parjam_exact_value``, to nearest, ties to even: math.fsum's value) is the same whatever
+ * the split of the values over ranks and their order.  This is the small superaccumulator of
+ * R. M. Neal, "Fast exact summation using small and large superaccumulators", arXiv:1505.05571.
+ */
+#define XACC_CHUNKS 66
+#define XACC_NAN 66
+#define XACC_PINF 67
+#define XACC_MINF 68
+#define XACC_LEN 69
+#define XACC_SLACK 2000
+
+static ALWAYS_INLINE void xacc_add(int64_t *acc, double x)
+{
+    uint64_t b;
+    memcpy(&b, &x, sizeof b);
+    const int e = (int)((b >> 52) & 0x7ff);
+    uint64_t m = b & 0xfffffffffffffULL;
+    if (e == 0x7ff) {
+        acc[m ? XACC_NAN : ((b >> 63) ? XACC_MINF : XACC_PINF)] += 1;
+        return;
+    }
+    int E = 0;
+    if (e) {
+        m |= 1ULL << 52;
+        E = e - 1;
+    }
+    const int idx = E >> 5, s = E & 31;
+    const int64_t low = (int64_t)((m << s) & 0xffffffffULL);
+    const int64_t high = (int64_t)(m >> (32 - s));
+    const int64_t neg = -(int64_t)(b >> 63); /* 0, or -1 for a negative value */
+    acc[idx] += (low ^ neg) - neg;
+    acc[idx + 1] += (high ^ neg) - neg;
+}
+
+/* Carries propagated: chunks 0 .. XACC_CHUNKS - 2 into [0, 2^32), the last one signed. */
+static void xacc_norm(int64_t *acc)
+{
+    for (int k = 0; k < XACC_CHUNKS - 1; k++) {
+        const int64_t c = acc[k] >> 32; /* floor(acc[k] / 2^32) (arithmetic shift) */
+        acc[k] &= 0xffffffffLL;
+        acc[k + 1] += c;
+    }
+}
+
+/* Adds n values (stride ``stride``) to the accumulator ``acc`` and normalises it. */
+void parjam_exact_add(int64_t n, const double *values, int64_t stride, int64_t *acc)
+{
+    int64_t since = 0;
+    for (int64_t k = 0; k < n; k++) {
+        xacc_add(acc, values[k * stride]);
+        if (++since == XACC_SLACK) {
+            xacc_norm(acc);
+            since = 0;
+        }
+    }
+    xacc_norm(acc);
+}
+
+static int bits128(unsigned __int128 v)
+{
+    const uint64_t hi = (uint64_t)(v >> 64), lo = (uint64_t)v;
+    if (hi)
+        return 128 - __builtin_clzll(hi);
+    return lo ? 64 - __builtin_clzll(lo) : 0;
+}
+
+/* The accumulated sum rounded to the nearest double, ties to even (NaN when a NaN or both
+ * infinities were added, else +-inf when one was; +0.0 for an exact zero). */
+double parjam_exact_value(const int64_t *acc_in)
+{
+    if (acc_in[XACC_NAN] || (acc_in[XACC_PINF] && acc_in[XACC_MINF]))
+        return NAN;
+    if (acc_in[XACC_PINF])
+        return INFINITY;
+    if (acc_in[XACC_MINF])
+        return -INFINITY;
+    int64_t a[XACC_CHUNKS];
+    for (int k = 0; k < XACC_CHUNKS; k++)
+        a[k] = acc_in[k];
+    xacc_norm(a);
+    double sign = 1.0;
+    if (a[XACC_CHUNKS - 1] < 0) { /* the magnitude: negate and normalise again */
+        sign = -1.0;
+        for (int k = 0; k < XACC_CHUNKS; k++)
+            a[k] = -a[k];
+        xacc_norm(a);
+    }
+    int top = XACC_CHUNKS - 1;
+    while (top >= 0 && a[top] == 0)
+        top--;
+    if (top < 0)
+        return 0.0;
+    /* the top three chunks (>= 65 significant bits when there are three) and a sticky bit */
+    const int low = top >= 2 ? top - 2 : 0;
+    unsigned __int128 v = 0;
+    for (int k = top; k >= low; k--)
+        v = (v << 32) | (uint64_t)a[k];
+    int sticky = 0;
+    for (int k = 0; k < low; k++)
+        sticky |= a[k] != 0;
+    int shift = bits128(v) - 53;
+    if (shift < 0)
+        shift = 0; /* fewer than 54 bits: exact (sticky is 0 then) */
+    if (shift > 0) {
+        const unsigned __int128 one = 1;
+        const unsigned __int128 rem = v & ((one << shift) - 1), half = one << (shift - 1);
+        v >>= shift;
+        if (rem > half || (rem == half && (sticky || (v & 1))))
+            v += 1;
+    }
+    return sign * ldexp((double)(uint64_t)v, 32 * low + shift - 1074);
+}
 
 static double powa(double x, double a)
 {
@@ -56,9 +183,11 @@ static ALWAYS_INLINE double separation(double xi, double xj, double L)
 static ALWAYS_INLINE double pair_loop(int64_t npairs, const int64_t *pi, const int64_t *pj,
                                const double *pos, const double *diam, double L, int d,
                                double alpha, double eps, int64_t lo, int64_t hi, double *force,
-                               const int harmonic)
+                               int64_t *eacc, const int harmonic)
 {
     double energy = 0.0;
+    int64_t icur = -1, flushes = 0;
+    double ecur = 0.0; /* the energy of the pairs (icur, j > icur) so far, in pair order */
     for (int64_t k = 0; k < (hi - lo) * d; k++)
         force[k] = 0.0;
     for (int64_t p = 0; p < npairs; p++) {
@@ -83,33 +212,55 @@ static ALWAYS_INLINE double pair_loop(int64_t npairs, const int64_t *pi, const i
         if (i >= lo && i < hi) {
             for (int a = 0; a < d; a++)
                 force[(i - lo) * d + a] -= c * dr[a];
-            energy += harmonic ? (eps / 2.0) * (delta * delta) : (eps / alpha) * powa(delta, alpha);
+            const double e = harmonic ? (eps / 2.0) * (delta * delta)
+                                      : (eps / alpha) * powa(delta, alpha);
+            if (!eacc) {
+                energy += e;
+            } else {
+                if (i != icur) { /* the pairs are grouped by their lower end */
+                    xacc_add(eacc, ecur);
+                    if (++flushes == XACC_SLACK) {
+                        xacc_norm(eacc);
+                        flushes = 0;
+                    }
+                    icur = i;
+                    ecur = 0.0;
+                }
+                ecur += e;
+            }
         }
+    }
+    if (eacc) {
+        xacc_add(eacc, ecur);
+        xacc_norm(eacc);
     }
     return energy;
 }
 
 static double forces(int64_t npairs, const int64_t *pi, const int64_t *pj, const double *pos,
                      const double *diam, double L, int d, double alpha, double eps, int64_t lo,
-                     int64_t hi, double *force)
+                     int64_t hi, double *force, int64_t *eacc)
 {
     const int harmonic = alpha == 2.0;
     if (d == 3 && harmonic)
-        return pair_loop(npairs, pi, pj, pos, diam, L, 3, alpha, eps, lo, hi, force, 1);
+        return pair_loop(npairs, pi, pj, pos, diam, L, 3, alpha, eps, lo, hi, force, eacc, 1);
     if (d == 2 && harmonic)
-        return pair_loop(npairs, pi, pj, pos, diam, L, 2, alpha, eps, lo, hi, force, 1);
+        return pair_loop(npairs, pi, pj, pos, diam, L, 2, alpha, eps, lo, hi, force, eacc, 1);
     if (d == 3)
-        return pair_loop(npairs, pi, pj, pos, diam, L, 3, alpha, eps, lo, hi, force, 0);
+        return pair_loop(npairs, pi, pj, pos, diam, L, 3, alpha, eps, lo, hi, force, eacc, 0);
     if (d == 2)
-        return pair_loop(npairs, pi, pj, pos, diam, L, 2, alpha, eps, lo, hi, force, 0);
-    return pair_loop(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, force, 0);
+        return pair_loop(npairs, pi, pj, pos, diam, L, 2, alpha, eps, lo, hi, force, eacc, 0);
+    return pair_loop(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, force, eacc, 0);
 }
 
+/* ``eacc`` NULL: returns the energy summed in pair order; else the energies of the pairs with
+ * an owned lower end, summed per lower end in pair order, are added to the exact accumulator
+ * ``eacc`` (normalised; XACC_LEN values), and 0 is returned. */
 double parjam_pair_forces(int64_t npairs, const int64_t *pi, const int64_t *pj, const double *pos,
                           const double *diam, double L, int d, double alpha, double eps,
-                          int64_t lo, int64_t hi, double *force)
+                          int64_t lo, int64_t hi, double *force, int64_t *eacc)
 {
-    return forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, force);
+    return forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, force, eacc);
 }
 
 /* Largest |x_k - ref_k|^2 (minimum image) over the nown particles. */
@@ -132,25 +283,41 @@ static double max_displacement2(int64_t nown, int d, const double *x, const doub
 
 enum { FIRE_UPDATE = 1, FIRE_FORCES = 2 };
 
-/* One FIRE step on the nown owned particles (x, v, f: nown x d, C order).
+/* One FIRE step on the nown owned particles (x, v, f: nall x d, C order, the owned rows first;
+ * the nall - nown rows after them are other ranks' particles, ghosts, updated alike).
  *
  * FIRE_UPDATE (Bitzek et al., PRL 97, 170201 (2006); semi-implicit Euler as in Guenole et al.,
  * Comput. Mater. Sci. 175, 109584 (2020)), with the scalars the caller derived from the last
  * reduction:  if ``reset`` (P <= 0): x += back v, v = 0;  then v += dt F;  v = mix_f F + mix_v v
- * (mix_v = 1 - a, mix_f = a |v|/|F|);  x += dt v.  When stale2 > 0 and some particle has moved
+ * (mix_v = 1 - a, mix_f = a |v|/|F|);  x += dt v, on all nall rows: a ghost row given its owner's
+ * x, v and F moves exactly as the owner moves it.  When stale2 > 0 and some particle has moved
  * by sqrt(stale2) or more since ``ref`` (the neighbour list's positions), returns 1 without
  * computing forces: the caller rebuilds the list and calls again with FIRE_FORCES alone.
  *
  * FIRE_FORCES: the forces on the owned particles from the pairs over ``pos`` (the owned block is
- * [lo, hi) of pos; on one rank pos is x itself), then sums[] = {energy, F.v, |F|^2, |v|^2,
- * max |F_i|^2, max |v_i|^2, max displacement^2 from ref} over the owned particles. */
-int parjam_fire_step(int mode, int64_t nown, int d, double *x, double *v, double *f,
+ * [lo, hi) of pos; on one rank pos is x itself), then the step's sums over the owned particles
+ * into ``acc`` (FIRE_ACC int64): exact accumulators (XACC_LEN each, normalised) of the energy,
+ * F.v, |F|^2 and |v|^2, each summed per particle first (its pairs, its d components, in a fixed
+ * order), then the maxima of |F_i|^2, |v_i|^2 and of the displacement^2 from ref as the bits of
+ * the non-negative doubles (ordered as int64).  The ranks' buffers are reduced by integer sums
+ * and maxima, and ``parjam_fire_sums`` turns the result into doubles: the same bits on any
+ * number of ranks. */
+enum { FIRE_ACC = 4 * XACC_LEN + 3 };
+
+static ALWAYS_INLINE int64_t max_bits(double x)
+{
+    int64_t b;
+    memcpy(&b, &x, sizeof b);
+    return b;
+}
+
+int parjam_fire_step(int mode, int64_t nown, int64_t nall, int d, double *x, double *v, double *f,
                      const double *ref, double L, double dt, int reset, double back, double mix_v,
                      double mix_f, double stale2, int64_t npairs, const int64_t *pi,
                      const int64_t *pj, const double *pos, const double *diam, double alpha,
-                     double eps, int64_t lo, int64_t hi, double *sums)
+                     double eps, int64_t lo, int64_t hi, int64_t *acc)
 {
-    const int64_t n = nown * d;
+    const int64_t n = nall * d;
     if (mode & FIRE_UPDATE) {
         for (int64_t k = 0; k < n; k++) {
             double vk = v[k];
@@ -167,32 +334,53 @@ int parjam_fire_step(int mode, int64_t nown, int d, double *x, double *v, double
             return 1;
     }
     if (mode & FIRE_FORCES) {
-        double e = forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f);
-        double p = 0.0, f2 = 0.0, v2 = 0.0, fm = 0.0, vm = 0.0;
+        for (int k = 0; k < FIRE_ACC; k++)
+            acc[k] = 0;
+        int64_t *ae = acc, *ap = acc + XACC_LEN, *af = acc + 2 * XACC_LEN;
+        int64_t *av = acc + 3 * XACC_LEN;
+        forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f, ae);
+        double fm = 0.0, vm = 0.0;
+        int64_t since = 0;
         for (int64_t k = 0; k < nown; k++) {
-            double fk = 0.0, vk = 0.0;
+            double p = 0.0, fk = 0.0, vk = 0.0;
             for (int a = 0; a < d; a++) {
                 const double fa = f[k * d + a], va = v[k * d + a];
                 p += fa * va;
                 fk += fa * fa;
                 vk += va * va;
             }
-            f2 += fk;
-            v2 += vk;
+            xacc_add(ap, p);
+            xacc_add(af, fk);
+            xacc_add(av, vk);
+            if (++since == XACC_SLACK) {
+                xacc_norm(ap);
+                xacc_norm(af);
+                xacc_norm(av);
+                since = 0;
+            }
             if (fk > fm)
                 fm = fk;
             if (vk > vm)
                 vm = vk;
         }
-        sums[0] = e;
-        sums[1] = p;
-        sums[2] = f2;
-        sums[3] = v2;
-        sums[4] = fm;
-        sums[5] = vm;
-        sums[6] = max_displacement2(nown, d, x, ref, L);
+        xacc_norm(ap);
+        xacc_norm(af);
+        xacc_norm(av);
+        acc[FIRE_ACC - 3] = max_bits(fm);
+        acc[FIRE_ACC - 2] = max_bits(vm);
+        acc[FIRE_ACC - 1] = max_bits(max_displacement2(nown, d, x, ref, L));
     }
     return 0;
+}
+
+/* The seven numbers of a (reduced) FIRE_ACC buffer: energy, F.v, |F|^2, |v|^2 (rounded to
+ * nearest) and max |F_i|^2, max |v_i|^2, max displacement^2. */
+void parjam_fire_sums(const int64_t *acc, double *out)
+{
+    for (int k = 0; k < 4; k++)
+        out[k] = parjam_exact_value(acc + k * XACC_LEN);
+    for (int k = 0; k < 3; k++)
+        memcpy(out + 4 + k, acc + FIRE_ACC - 3 + k, sizeof(double));
 }
 
 #ifndef PARJAM_SRC_SHA

@@ -4,24 +4,30 @@ no rank holds or loops over all N particles (issue 18).
 
 Each rank owns the particles of its slab (positions, velocities, diameters, global ids, sorted
 by id).  A neighbour rebuild hands particles that left a slab to their new owner
-(``SlabDomain.migrate``; the slab bounds move to the count quantiles again when the counts
-drift by more than REBALANCE), plans the ghosts within cutoff = max diameter + skin of the slab
-(``SlabDomain.halo``, their diameters pulled once) and lists the pairs of owned particles and
-ghosts in compiled code (``kernels.slab_pairs``; on one rank, where all ghosts are periodic
-images, the fully periodic cell search ``kernels.cell_pair_lists``, with no halo).  A FIRE
-step then is: the compiled update of the owned particles, ONE ghost refresh (``Halo.pull`` of
-the positions), the compiled forces and partial sums, ONE allreduce of the seven sums
-(``parjam_fire_step``).
+(``SlabDomain.migrate``; the slab bounds move to the count quantiles again, before the
+hand-over, when the counts would drift by more than REBALANCE), plans the ghosts within
+cutoff = max diameter + skin of the slab (``SlabDomain.halo``: their positions, velocities and
+diameters pulled in one exchange) and lists the pairs of owned particles and ghosts in compiled
+code (``kernels.slab_pairs``; on one rank, where all ghosts are periodic images, the fully
+periodic cell search ``kernels.cell_pair_lists``, with no halo).
+
+A FIRE step on P ranks has ONE synchronisation: the compiled update moves the owned particles
+AND the ghosts (each rank holds its ghosts' positions, velocities and forces, and moves them
+with the same arithmetic as their owners: the same bits), the compiled forces and partial sums
+of the owned particles follow at once -- no halo wait -- and then the forces of the particles
+that are other ranks' ghosts are sent to them (non-blocking, point to point) while the step's
+sums are reduced (one allreduce); the ghosts' forces are in place when it returns.  So the halo
+traffic is hidden behind the one reduction the step needs anyway.
 
 Ghost pairs are computed on both sides: a pair of particles on two ranks is listed by both, and
 each adds the force to its own particle only (no second exchange to push ghost forces back).
 The pairs are listed in global (i, j) order and the separation is the minimum image of the
 difference of the continuous (never re-wrapped) positions, exactly as the serial kernel does,
 so the force on a particle is bitwise independent of the number of ranks and of when the list
-was rebuilt; sums over particles (energy, F.v, ...) differ across decompositions in round-off
-only.  ``resync`` redoes the decomposition from the positions alone; parjam.pack.fire calls it
-where it offers checkpoint snapshots, so a run resumed from one meets the same decomposition
-(hence the same sums, bitwise) as the run that wrote it.
+was rebuilt.  The sums over particles (energy, F.v, |F|^2, |v|^2) are exact (fixed-point
+accumulators, parjam.net.exactsum, reduced as integers and rounded once) and the maxima are
+exact anyway: they too are the same bits on any number of ranks and for any decomposition, so
+FIRE's trajectory is.
 
 The positions are kept unwrapped between rebuilds (a particle's coordinates change only by
 FIRE's updates): the wrapped copy a rebuild needs for ownership and search is temporary.
@@ -35,11 +41,14 @@ from parjam.pack import kernels
 from parjam.net.domain import SlabDomain, as_mpi, send_rows
 from parjam.logevents import ALLREDUCE, FORCE, HALO, MIGRATE, REBUILD, event
 
-REBALANCE = 1.10  # new slab bounds when the most loaded rank holds 10 % more than the mean
+# new slab bounds when the most loaded rank would hold 2 % more than the mean after a rebuild
+# (a rebuild's hand-over moves the particles anyway; new bounds cost one histogram allreduce)
+REBALANCE = 1.02
+TAG = 7103  # the point-to-point messages of the ghosts' forces
 
 
 class FireSums:
-    """The global sums of one fused FIRE step (from the 7-number buffer of _kernels.c)."""
+    """The global sums of one fused FIRE step (kernels.fire_sums of the reduced buffer)."""
 
     __slots__ = ("energy", "power", "f2", "v2", "fmax", "vmax", "disp")
 
@@ -66,6 +75,7 @@ class SlabEngine:
         dmax = float(np.max(diam)) if len(diam) else 0.0
         self.cut = self.comm.allreduce(dmax, op=_mpi_max()) + self.skin
         self.n_rebuilds = self.n_migrated = 0
+        self.acc = np.zeros(kernels.FIRE_ACC, dtype=np.int64)  # the step's sums (exact)
         self.sums = np.zeros(kernels.N_SUMS)
         v = np.zeros_like(x) if v is None else np.array(v, dtype=np.float64)
         self.domain = SlabDomain.balanced(self.comm, self.L, x)
@@ -79,16 +89,18 @@ class SlabEngine:
         self.xu, self.ids, self.diam, self.v = x, ids, diam, v
 
     def rebuild(self, rebalance=False):
-        """Migration (and new bounds if the counts drifted or ``rebalance``), the ghost plan
+        """Migration (to new bounds if the counts would drift or ``rebalance``), the ghost plan
         and the pair list at the current positions (collective)."""
         with event(REBUILD):
             with event(MIGRATE):
                 if self.size > 1:
-                    leaving = np.count_nonzero(self.domain.owner(self.xu) != self.rank)
+                    dest = self.domain.owner(self.xu)
+                    leaving = np.count_nonzero(dest != self.rank)
+                    counts = np.bincount(dest, minlength=self.size).astype(np.int64)
+                    self.comm.Allreduce(_mpi_in_place(), counts, op=_mpi_sum())
+                    if rebalance or counts.max() > REBALANCE * counts.mean():
+                        self.domain = SlabDomain.balanced(self.comm, self.L, self.xu)
                     ids, fl = self._migrate(self.xu, self.ids, self.v, self.diam)
-                    if rebalance or self.domain.imbalance(len(ids)) > REBALANCE:
-                        self.domain = SlabDomain.balanced(self.comm, self.L, fl["xu"])
-                        ids, fl = self._migrate(fl["xu"], ids, fl["v"], fl["diam"])
                     self.n_migrated += int(leaving)
                 else:  # one slab: nothing to hand over
                     ids, fl = self.ids, {"xu": self.xu, "v": self.v, "diam": self.diam}
@@ -115,11 +127,11 @@ class SlabEngine:
         xw = self.domain.wrap(self.xu)
         if self.size == 1 and self._plan_periodic(xw, cap):
             return
-        halo = self.domain.halo(xw, self.ids, self.cut)
-        # the ghosts' positions and diameters in one exchange
+        # the ghost plan, and the ghosts' positions, velocities and diameters, in one exchange
         with event(HALO) if self.size > 1 else contextlib.nullcontext():  # one rank: a copy
-            got = halo.pull(np.concatenate([self.xu, self.diam[:, None]], axis=1))
-        g_xu, g_diam = got[:, :d], got[:, d]
+            halo = self.domain.halo(xw, self.ids, self.cut,
+                                    np.concatenate([self.xu, self.v, self.diam[:, None]], axis=1))
+        got = halo.values
         src = np.repeat(np.arange(self.size), halo.recv_counts)[halo.order]
         image = src == self.rank  # own particles seen across the periodic boundary
         foreign = np.flatnonzero(~image)
@@ -135,9 +147,26 @@ class SlabEngine:
         self.pi, self.pj = kernels.slab_pairs(np.concatenate([xw, halo.x]), self.L, self.cut,
                                               np.concatenate([np.arange(n_own), row]), gid,
                                               kinds, low, cap)
-        self.halo, self.foreign = halo, foreign
-        self.all_foreign = len(foreign) == halo.n
-        self._arrays(g_xu[foreign], g_diam[foreign])
+        self._ghost_plan(halo, foreign)
+        got = got[foreign]
+        self._arrays(got[:, :d], got[:, d:2 * d], got[:, 2 * d])
+
+    def _ghost_plan(self, halo, foreign):
+        """The per-step exchange of the ghosts' forces: the owned rows other ranks hold as
+        ghosts, packed by destination (``send_index``), the received rows' places among this
+        rank's ghost rows (``unpack``), and the (rank, first, last) slices of both buffers."""
+        d = self.d
+        self.send_index = np.ascontiguousarray(halo.send_index, dtype=np.int64)
+        self.unpack = np.ascontiguousarray(halo.order[foreign], dtype=np.int64)
+        self.sendbuf = np.empty((len(self.send_index), d))
+        self.recvbuf = np.empty((int(np.sum(halo.recv_counts)), d))
+
+        def slices(counts):
+            ends = np.cumsum(counts)
+            return [(r, int(e - c), int(e)) for r, (c, e) in enumerate(zip(counts, ends)) if c]
+
+        self.send_slices = slices(np.asarray(halo.send_counts))
+        self.recv_slices = slices(np.asarray(halo.recv_counts))
 
     def _plan_periodic(self, xw, cap):
         """One rank: every ghost is an image of an owned particle, so the fully periodic cell
@@ -148,34 +177,29 @@ class SlabEngine:
         if got is None:
             return False
         self.pi, self.pj = got
-        self.halo, self.foreign, self.all_foreign = None, np.empty(0, dtype=np.int64), True
-        self._arrays(np.empty((0, self.d)), np.empty(0))
+        self.send_index = self.unpack = np.empty(0, dtype=np.int64)
+        self.sendbuf = self.recvbuf = np.empty((0, self.d))
+        self.send_slices = self.recv_slices = []
+        self._arrays(np.empty((0, self.d)), np.empty((0, self.d)), np.empty(0))
         return True
 
-    def _arrays(self, g_pos, g_diam):
-        """The force arrays for the owned rows and the ghosts of other ranks, and the kernel."""
-        n_own, d = len(self.ids), self.d
-        self.pos = np.empty((n_own + len(g_pos), d))  # [owned; ghosts of other ranks]
-        self.pos[:n_own] = self.xu
-        self.xu = self.pos[:n_own]  # the owned positions are a view of the force array
+    def _arrays(self, g_pos, g_v, g_diam):
+        """The arrays of the owned rows followed by the ghosts of other ranks -- positions,
+        velocities, forces (the ghosts' arrive with the next exchange), diameters -- and the
+        kernel bound to them."""
+        n_own, n_all, d = len(self.ids), len(self.ids) + len(g_pos), self.d
+        self.pos = np.empty((n_all, d))  # [owned; ghosts of other ranks]
+        self.pos[:n_own], self.pos[n_own:] = self.xu, g_pos
+        self.xu = self.pos[:n_own]  # the owned rows are views of the kernel's arrays
+        self.v_all = np.empty((n_all, d))
+        self.v_all[:n_own], self.v_all[n_own:] = self.v, g_v
+        self.v = self.v_all[:n_own]
+        self.f_all = np.zeros((n_all, d))
+        self.f = self.f_all[:n_own]
         self.pdiam = np.concatenate([self.diam, g_diam])
         self.ref = self.xu.copy()
-        self.f = np.zeros((n_own, d))
-        self.v = np.ascontiguousarray(self.v)
-        self.kernel = kernels.FireKernel(self.xu, self.v, self.f, self.ref, self.pi, self.pj,
-                                         self.pos, self.pdiam, self.sums)
-        self.pos[n_own:] = g_pos
-        self.fresh = True
-
-    def _refresh(self):
-        """The ghosts' positions from their owners (collective; a no-op on one rank, where
-        every ghost is an image of an owned particle)."""
-        self.fresh = True
-        if self.size == 1:
-            return
-        with event(HALO):
-            got = self.halo.pull(self.xu)
-        self.pos[len(self.ids):] = got if self.all_foreign else got[self.foreign]
+        self.kernel = kernels.FireKernel(self.pos, self.v_all, self.f_all, self.ref, self.pi,
+                                         self.pj, self.pos, self.pdiam, self.acc, nown=n_own)
 
     @property
     def n_own(self):
@@ -184,65 +208,63 @@ class SlabEngine:
     # --- forces and the fused FIRE step ---------------------------------------------------------
     def start(self):
         """Forces at the current positions and the global FireSums (collective).  Positions
-        moved from outside (``xu``) need a ``rebuild()`` first."""
-        return self._forces()
-
-    def _forces(self):
-        if not self.fresh:
-            self._refresh()
+        or velocities changed from outside (``xu``, ``v``) need a ``rebuild()`` first."""
         self._call(kernels.FIRE_FORCES, 0.0, False, 0.0, 1.0, 0.0)
-        return self._reduce()
-
-    def resync(self):
-        """The decomposition redone from the positions alone (new bounds, migration, ghosts,
-        pairs) and the forces and sums recomputed on it (collective): after it the state
-        depends on positions and velocities only, as after a restart from them."""
-        self.rebuild(rebalance=True)
-        return self._forces()
+        return self._exchange()
 
     def step(self, dt, reset, mix_v, mix_f, last):
         """One FIRE step (see ``parjam_fire_step``): if ``reset`` step half back and zero v;
-        v += dt F; v = mix_v v + mix_f F; x += dt v; then the forces at the new positions and
-        the global FireSums (one ghost refresh, one allreduce).  On one rank the kernel checks
-        the displacement since the last rebuild itself; on several ranks the list is rebuilt
-        when that displacement plus a bound on this step's (from ``last``, the previous sums)
-        could reach half the skin, a decision every rank takes alike without a reduction."""
+        v += dt F; v = mix_v v + mix_f F; x += dt v (owned particles and ghosts alike); then
+        the forces at the new positions and the global FireSums (``_exchange``: one allreduce,
+        the ghosts' forces alongside).  On one rank the kernel checks the displacement since the
+        last rebuild itself; on several ranks the list is rebuilt when that displacement plus a
+        bound on this step's (from ``last``, the previous sums) could reach half the skin, a
+        decision every rank takes alike without a reduction."""
         back = -0.5 * dt
         if self.size == 1:
             stale = self._call(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, dt, reset, back,
                                mix_v, mix_f, stale2=(0.5 * self.skin) ** 2)
             if stale:
-                self.fresh = False
                 self.rebuild()
                 self._call(kernels.FIRE_FORCES, dt, reset, back, mix_v, mix_f)
-            return self._reduce()
+            return self._exchange()
         vmax = 0.0 if reset else last.vmax
         bound = dt * (mix_v * (vmax + dt * last.fmax) + mix_f * last.fmax)
         if reset:
             bound += 0.5 * dt * last.vmax
         self._call(kernels.FIRE_UPDATE, dt, reset, back, mix_v, mix_f)
-        self.fresh = False
         if (last.disp + bound) * (1.0 + 1e-6) >= 0.5 * self.skin:
             self.rebuild()
-        else:
-            self._refresh()
         self._call(kernels.FIRE_FORCES, dt, reset, back, mix_v, mix_f)
-        return self._reduce()
+        return self._exchange()
 
     def _call(self, mode, dt, reset, back, mix_v, mix_f, stale2=0.0):
         with event(FORCE):
             return self.kernel(mode, self.L, dt, reset, back, mix_v, mix_f, stale2, self.alpha,
                                self.eps, 0, self.n_own)
 
-    def _reduce(self):
-        """The FIRE sums over the ranks: one allreduce of the 7-number buffer (sums of the first
-        four, maxima of the rest)."""
-        if self.size == 1:
-            return FireSums(self.sums)
-        out = np.empty_like(self.sums)
-        with event(ALLREDUCE):
-            self.comm.Allreduce(self.sums, out, op=sum_max_op())
-        return FireSums(out)
+    def _exchange(self):
+        """The step's synchronisation (collective): the forces of the owned particles that
+        other ranks hold as ghosts go to them (non-blocking, point to point) while the FIRE
+        sums are reduced -- one allreduce of the kernel's buffer (integer sums of the exact
+        accumulators, maxima of the rest), rounded to doubles once: the same bits on any
+        number of ranks; then the ghosts' forces are unpacked into their rows."""
+        if self.size > 1:
+            from mpi4py import MPI
+
+            comm = self.comm
+            with event(HALO):
+                np.take(self.f, self.send_index, axis=0, out=self.sendbuf)
+                reqs = [comm.Irecv(self.recvbuf[a:b], source=r, tag=TAG)
+                        for r, a, b in self.recv_slices]
+                reqs += [comm.Isend(self.sendbuf[a:b], dest=r, tag=TAG)
+                         for r, a, b in self.send_slices]
+            with event(ALLREDUCE):
+                comm.Allreduce(MPI.IN_PLACE, self.acc, op=sum_max_op())
+            with event(HALO):
+                MPI.Request.Waitall(reqs)
+                np.take(self.recvbuf, self.unpack, axis=0, out=self.f_all[self.n_own:])
+        return FireSums(self.kernel.sums(self.sums))
 
     # --- hand-over to row blocks (lazy gathers) ------------------------------------------------
     def to_blocks(self, ranges, values):
@@ -259,20 +281,35 @@ def _mpi_max():
     return MPI.MAX
 
 
+def _mpi_sum():
+    from mpi4py import MPI
+
+    return MPI.SUM
+
+
+def _mpi_in_place():
+    from mpi4py import MPI
+
+    return MPI.IN_PLACE
+
+
 _OP = None
 
 
 def sum_max_op():
-    """MPI op on the FIRE buffer: sums of entries 0-3, maxima of entries 4-6 (commutative)."""
+    """MPI op on the FIRE buffer (int64, kernels.FIRE_ACC): integer sums of the four exact
+    accumulators, maxima of the last three entries (bits of non-negative doubles, which order
+    as their values).  Exact, so commutative and associative: any reduction tree gives the
+    same result."""
     global _OP
     if _OP is None:
         from mpi4py import MPI
 
         def combine(inbuf, inoutbuf, datatype):
-            a = np.frombuffer(inbuf, dtype=np.float64)
-            b = np.frombuffer(inoutbuf, dtype=np.float64)
-            b[:4] += a[:4]
-            np.maximum(b[4:], a[4:], out=b[4:])
+            a = np.frombuffer(inbuf, dtype=np.int64)
+            b = np.frombuffer(inoutbuf, dtype=np.int64)
+            b[:-3] += a[:-3]
+            np.maximum(b[-3:], a[-3:], out=b[-3:])
 
         _OP = MPI.Op.Create(combine, commute=True)
     return _OP

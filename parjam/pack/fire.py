@@ -1,8 +1,13 @@
 """FIRE (Bitzek et al., PRL 97, 170201 (2006)) to a force tolerance, one fused compiled step per
 iteration on the spatial decomposition (parjam.pack.engine.SlabEngine.step: update, ghost refresh,
-forces and partial sums, then one allreduce of seven numbers), with the choice of today's
+forces and partial sums, then one allreduce of the exact sums), with the choice of today's
 parameters or FIRE 2.0 (Guenole et al., Comput. Mater. Sci. 175, 109584 (2020), Algorithm 2 and
 Table 1).
+
+The trajectory is the same bits on any number of ranks: the force on a particle is summed over
+its pairs in global (i, j) order, and the sums FIRE decides on (energy, F.v, |F|^2, |v|^2, the
+maxima) are exact (parjam.net.exactsum) -- so neither the slabs, nor when the neighbour lists are
+rebuilt, nor where a run was checkpointed and resumed, changes a bit.
 
 Both variants integrate with semi-implicit Euler (v += dt F, then x += dt v) and step half back
 (x -= dt v / 2, v = 0) when the power P = F.v turns non-positive.  FIRE 2.0 differs in its
@@ -113,11 +118,9 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snaps
     block rows), time step and counters.  Every SNAPSHOT_EVERY steps ``snapshot(make_state)``
     is called, if given, on all ranks; ``make_state()`` (collective) returns the current
     FireState, its velocities handed from the engine's rows to the block rows (no rank gathers
-    all N; parjam.files.checkpoint writes them by row blocks).
-    At those steps, on several ranks, the decomposition is redone from the positions alone
-    (``SlabEngine.resync``) whether or not a snapshot is taken: sums over particles depend on
-    which rank owns what in round-off, and a run resumed from a snapshot starts its
-    decomposition afresh, so both must meet the same one there to go on bitwise alike."""
+    all N; parjam.files.checkpoint writes them by row blocks).  A run resumed from it, on any
+    number of ranks, goes on bitwise as the uninterrupted one: the forces and the sums depend on
+    the positions and velocities only, not on the decomposition."""
     p = params or FireParams()
     dt, a, n_pos, step = p.dt, p.a0, 0, 0
     v0 = None
@@ -149,11 +152,8 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snaps
         s = eng.step(dt, reset, mix_v, mix_f, s)
         if progress is not None and step % 100 == 0:
             progress(f"FIRE step {step}: E/N = {s.energy / ff.n:.3e}, max|F| = {s.fmax:.3e}")
-        if step % SNAPSHOT_EVERY == 0:
-            if eng.size > 1:
-                s = eng.resync()
-            if snapshot is not None:
-                snapshot(make_state)
+        if snapshot is not None and step % SNAPSHOT_EVERY == 0:
+            snapshot(make_state)
     ff.stop_engine()
     ff.wrap()
     return MinResult(status, s.energy, s.fmax, fire_steps=step)

@@ -15,14 +15,17 @@ the block rows visit their slabs, one ghost exchange, each pair back to the bloc
 ends), so no rank gathers the positions; each rank computes the forces on its particles only
 and assembles its rows of Newton's Hessian from the halo positions.  Between rebuilds a force
 evaluation fetches just the positions of the particles those pairs touch (its own and a halo of
-ghosts, one VecScatter; their diameters are fetched once per rebuild).  Forces on a particle are summed over its pairs in global (i, j) order, so they
-are bitwise independent of the number of ranks.  Scalars (energy, max |F|) are reduced over
-the communicator.
+ghosts, one VecScatter; their diameters are fetched once per rebuild).  Forces on a particle
+are summed over its pairs in global (i, j) order, so they are bitwise independent of the number
+of ranks; the energy is an exact sum (parjam.net.exactsum) and max |F| a maximum, so they are
+too.  Newton's matrix comes from the contacts (``contact_rows``, ``contact_operator``), each
+row summed in global (i, j) order, for the rank-independent solvers of parjam.pack.newtonsolve.
 """
 
 import numpy as np
 
 from parjam import env
+from parjam.net import exactsum
 from parjam.pack import kernels
 from parjam.vib import hessian
 from parjam.net.domain import SlabDomain, send_rows
@@ -64,7 +67,7 @@ class ForceField:
         self.n_rebuilds = 0
         self._hess = None  # Hessian kept between Newton steps (see hessian())
         self._hess_pairs = None
-        self.newton_ksp = None  # its factorisation, kept by minimize.newton
+        self.newton_ksp = None  # its solver (parjam.pack.newtonsolve), kept by minimize.newton
         self.halo_scatter = self.halo_x = None  # see _build_halo
 
     def set_box(self, L):
@@ -234,16 +237,22 @@ class ForceField:
 
     # --- energy and forces ---------------------------------------------------------------
     def evaluate(self, f):
-        """Write the forces on owned particles into Vec f; return the total energy."""
+        """Write the forces on owned particles into Vec f; return the total energy (an exact
+        sum: the same bits on any number of ranks)."""
         self.n_force_calls += 1
         if self._stale(self.x.array_r.reshape(-1, self.d)):
             self._rebuild()
         pos = self._halo_positions()
+        acc = np.zeros(exactsum.ACC_LEN, dtype=np.int64)
         with event(FORCE):
-            e_local = kernels.pair_forces(self.halo_i, self.halo_j, pos, self.halo_diam, self.L,
-                                          self.alpha, self.eps, self.halo_lo, self.halo_hi,
-                                          self.local(f))
-        return self.mpi.allreduce(e_local)
+            kernels.pair_forces(self.halo_i, self.halo_j, pos, self.halo_diam, self.L,
+                                self.alpha, self.eps, self.halo_lo, self.halo_hi, self.local(f),
+                                acc)
+        if self.comm.getSize() > 1:
+            from mpi4py import MPI
+
+            self.mpi.Allreduce(MPI.IN_PLACE, acc, op=MPI.SUM)
+        return exactsum.value(acc)
 
     # --- FIRE on the spatial decomposition (parjam.pack.fire) ---------------------------------------
     def start_engine(self, v_block=None):
@@ -307,6 +316,82 @@ class ForceField:
             self._hess = hessian.assemble(self.comm, self.n, self.d, i, j, blocks, shift)
             self._hess_pairs = self.pairs
         return self._hess
+
+    # --- Newton's matrix from the contacts (parjam.pack.newtonsolve) ----------------------------
+    def _contact_blocks(self, kind="full"):
+        """The contacts among the pairs (closer than sigma_ij) as global ids, halo rows and
+        their d x d blocks of Eq. (1) (parjam.vib.hessian.contact_blocks)."""
+        self._update_pairs()
+        pos = self._halo_positions()
+        rij, r, sigma = pair_geometry(pos, self.L, self.halo_diam,
+                                      np.stack([self.halo_i, self.halo_j], axis=1))
+        c = r < sigma
+        blocks = hessian.contact_blocks(rij[c], r[c], sigma[c], self.alpha, self.eps, kind)
+        return self.pairs[c, 0], self.pairs[c, 1], self.halo_i[c], self.halo_j[c], blocks
+
+    def contact_rows(self, shift=0.0):
+        """This rank's block rows of H + shift I from the contacts alone, as a scalar CSR
+        (indptr, global columns, values): each row is summed over its contacts in global
+        (i, j) order (parjam.vib.hessian.local_csr), so the rows, and their pattern, are the
+        same bits on any number of ranks (collective)."""
+        i, j, _, _, blocks = self._contact_blocks()
+        return hessian.local_csr(self.comm, self.n, self.d, i, j, blocks, shift)
+
+    def contact_operator(self, shift=0.0):
+        """(apply, precondition, release) on this rank's rows: v -> (H + shift I) v and the
+        point-block Jacobi r -> D^-1 r (D: the d x d diagonal blocks of H + shift I), for
+        (n_own, d) arrays, valid until the next neighbour rebuild; release() frees them.  A product sums each particle's contacts in global (i, j) order, first as
+        the upper end, then as the lower one (the force kernel's order): the same bits on any
+        number of ranks (collective per call)."""
+        PETSc = env.petsc()
+        gi, gj, hi_, hj_, K = self._contact_blocks()
+        d, lo, hi = self.d, self.lo, self.hi
+        own_i, own_j = (gi >= lo) & (gi < hi), (gj >= lo) & (gj < hi)
+        idx = np.concatenate([gj[own_j], gi[own_i]]) - lo
+        n_own = hi - lo
+        diag = np.empty((n_own, d, d))
+        Kc = np.concatenate([K[own_j], K[own_i]])
+        for a in range(d):
+            for b in range(d):
+                diag[:, a, b] = np.bincount(idx, weights=Kc[:, a, b], minlength=n_own)
+        diag += shift * np.eye(d)
+        inv = np.linalg.inv(diag) if n_own else diag
+        vec, halo = self.vec(), None
+        if self.halo_scatter is not None:
+            halo = self.halo_x.duplicate()
+
+        def release():
+            for obj in (vec, halo):
+                if obj is not None:
+                    obj.destroy()
+
+        def apply(v):
+            vec.array[:] = v.reshape(-1)
+            if halo is None:
+                vh = v
+            else:
+                self.halo_scatter.scatter(vec, halo, PETSc.InsertMode.INSERT,
+                                          PETSc.ScatterMode.FORWARD)
+                vh = halo.array_r.reshape(-1, d)
+            dv = vh[hj_] - vh[hi_]  # v_j - v_i
+            w = np.zeros_like(dv)  # K (v_j - v_i), components in a fixed order
+            for a in range(d):
+                for b in range(d):
+                    w[:, a] += K[:, a, b] * dv[:, b]
+            wc = np.concatenate([w[own_j], -w[own_i]])
+            out = np.empty((n_own, d))
+            for a in range(d):
+                out[:, a] = np.bincount(idx, weights=wc[:, a], minlength=n_own)
+            return out + shift * v
+
+        def precondition(r):
+            out = np.zeros_like(r)
+            for a in range(d):
+                for b in range(d):
+                    out[:, a] += inv[:, a, b] * r[:, b]
+            return out
+
+        return apply, precondition, release
 
     def destroy(self):
         if self._hess is not None:

@@ -4,8 +4,8 @@ force and stiffness, N', Nc - Nc_iso) from the positions each rank holds, with O
 
 It is parjam.net.active's construction (``SlabDomain.balanced`` + ``migrate`` to the slabs, one
 ghost exchange, ``half_edges``, iterative ``remove_rattlers``, the parallel ``renumber``), with
-the sums taken the way the serial ``network.analyze`` takes them, so that on one rank every
-number is bit-identical to it (the packing protocol's decisions, hence its files, do not change):
+the per-contact and per-particle numbers taken the way the serial ``network.analyze`` takes
+them:
 
 - every contact is summed once, on the owner of its lower-id end (the half-edges with
   id_i < id_j), in (id_i, id_j) order: the serial contact order.  The separation of such a
@@ -13,17 +13,20 @@ number is bit-identical to it (the packing protocol's decisions, hence its files
 - the force on a particle is its contacts with lower-id partners (ascending) minus those with
   higher-id partners (ascending): ``network.particle_forces``' two bincounts, in their order.
 
-On P ranks the per-rank partial sums are allreduced: the numbers agree with the serial ones to
-round-off; counts and rattlers exactly.  ``ActiveEdges`` keeps the half-edges among the
-non-rattlers (active numbers, this rank's rows [lo, hi)) for the distributed Hessian of
-parjam.pack.stability, ordered so that its assembly on one rank is the serial one.
+The sums over contacts (energy, stress, the mean contact force and stiffness) are exact
+(parjam.net.exactsum: one allreduce of integer accumulators, rounded once), so every number is
+the same bits on any number of ranks (the serial ``network.analyze``'s numpy sums agree with
+them to round-off); counts, rattlers and the maximum force are exact.  ``ActiveEdges`` keeps
+the half-edges among the non-rattlers (active numbers, this rank's rows [lo, hi)) for the
+distributed Hessian of parjam.pack.stability, ordered so that its assembly on one rank is
+the serial one.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from parjam.net import potential
+from parjam.net import exactsum, potential
 from parjam.net.active import half_edges, max_op, remove_rattlers, renumber, row_block
 from parjam.net.domain import SlabDomain, as_mpi
 from parjam.net.network import NetworkNumbers
@@ -134,10 +137,10 @@ def network(st, alpha, eps=1.0, phi=np.nan):
     lower = ~once
     # energy and stress (network.analyze, network.stress_tensor): each contact once
     c1 = edges.subset(once)
-    energy = potential.energy(c1.r, c1.sigma, alpha, eps).sum()
+    energy = potential.energy(c1.r, c1.sigma, alpha, eps)
     dv = potential.dV(c1.r, c1.sigma, alpha, eps)
     w = -(dv / c1.r)[:, None, None]
-    stress = (w * c1.rij[:, :, None] * c1.rij[:, None, :]).sum(axis=0)
+    stress = w * c1.rij[:, :, None] * c1.rij[:, None, :]  # per contact; summed exactly below
     # forces on the owned particles (network.particle_forces' order)
     f_once = pair_forces(c1, alpha, eps)
     c2 = edges.subset(lower)
@@ -150,15 +153,18 @@ def network(st, alpha, eps=1.0, phi=np.nan):
     # contacts among non-rattlers, each once, in (i, j) order
     act = once & (number[edges.i] >= 0) & (number[edges.j] >= 0)
     ca = edges.subset(act)
-    fsum = np.abs(potential.dV(ca.r, ca.sigma, alpha, eps)).sum()
-    ksum = potential.d2V(ca.r, ca.sigma, alpha, eps).sum()
-    sums = comm.allreduce(np.array([energy, fsum, ksum]))  # one rank: the values themselves
+    fsum = np.abs(potential.dV(ca.r, ca.sigma, alpha, eps))
+    ksum = potential.d2V(ca.r, ca.sigma, alpha, eps)
+    # the sums over contacts, exact (one allreduce): the same bits on any number of ranks
+    sums = exactsum.totals(comm, energy, fsum, ksum,
+                           *(stress[:, a, b] for a in range(d) for b in range(d)))
+    stress = np.array(sums[3:]).reshape(d, d)
     nc = comm.allreduce(int(act.sum()))
     volume = st.L ** d
     return JamNetwork(
         d=d, n=comm.allreduce(n_own), n_active=comm.allreduce(hi - lo), n_contacts=nc,
         phi=phi, alpha=float(alpha), eps=float(eps), energy=float(sums[0]),
-        stress=comm.allreduce(stress) / volume,
+        stress=stress / volume,
         max_force=comm.allreduce(float(fnorm.max()) if len(fnorm) else 0.0, op=max_op()),
         mean_force=float(sums[1] / nc) if nc else 0.0,
         mean_stiffness=float(sums[2] / nc) if nc else 0.0, state=st, rattler=rattler,

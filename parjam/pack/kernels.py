@@ -22,7 +22,7 @@ import tempfile
 
 import numpy as np
 
-from parjam.net import potential
+from parjam.net import exactsum, potential
 from parjam.net.system import pair_separation
 
 _HERE = os.path.dirname(os.path.abspath(__file__))
@@ -39,6 +39,9 @@ FIRE_UPDATE = 1
 FIRE_FORCES = 2
 # fire_step's sums: energy, F.v, |F|^2, |v|^2, max|F_i|^2, max|v_i|^2, max displacement^2
 N_SUMS = 7
+# fire_step's buffer of them (FIRE_ACC in _kernels.c): four exact accumulators
+# (parjam.net.exactsum) and the bits of the three maxima, reduced over ranks as integers
+FIRE_ACC = 4 * exactsum.ACC_LEN + 3
 
 
 def source_sha():
@@ -118,17 +121,28 @@ def library():
     w64 = ptr(np.float64, flags="C,W")
     f = lib.parjam_pair_forces
     f.restype = ctypes.c_double
+    wi64 = ptr(np.int64, flags="C,W")
     f.argtypes = [ctypes.c_int64, i64, i64, f64, f64, ctypes.c_double, ctypes.c_int,
-                  ctypes.c_double, ctypes.c_double, ctypes.c_int64, ctypes.c_int64, w64]
+                  ctypes.c_double, ctypes.c_double, ctypes.c_int64, ctypes.c_int64, w64,
+                  ctypes.c_void_p]
     s = lib.parjam_fire_step
     s.restype = ctypes.c_int
     dbl = ctypes.c_double
-    s.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int, w64, w64, w64, f64, dbl, dbl,
+    s.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_int, w64, w64, w64, f64,
+                  dbl, dbl,
                   ctypes.c_int, dbl, dbl, dbl, dbl, ctypes.c_int64, i64, i64, f64, f64, dbl, dbl,
-                  ctypes.c_int64, ctypes.c_int64, w64]
+                  ctypes.c_int64, ctypes.c_int64, wi64]
+    xa = lib.parjam_exact_add
+    xa.restype = None
+    xa.argtypes = [ctypes.c_int64, f64, ctypes.c_int64, wi64]
+    xv = lib.parjam_exact_value
+    xv.restype = ctypes.c_double
+    xv.argtypes = [i64]
+    fs = lib.parjam_fire_sums
+    fs.restype = None
+    fs.argtypes = [i64, w64]
     c = lib.parjam_cell_pairs
     c.restype = ctypes.c_int64
-    wi64 = ptr(np.int64, flags="C,W")
     c.argtypes = [ctypes.c_int64, ctypes.c_int, f64, ctypes.c_double, ctypes.c_double,
                   ctypes.c_int, ctypes.c_int64, ctypes.c_int64, wi64, wi64, wi64, w64,
                   ctypes.c_int64, wi64, wi64, ctypes.POINTER(ctypes.c_int)]
@@ -160,45 +174,60 @@ def _fallback():
               file=sys.stderr, flush=True)
 
 
-def pair_forces(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
+def pair_forces(pi, pj, pos, diam, L, alpha, eps, lo, hi, out, acc=None):
     """Forces on the owned particles [lo, hi) into ``out`` ((hi-lo, d), C order); returns the
-    energy of the pairs whose first particle is owned."""
+    energy of the pairs whose first particle is owned, summed in pair order, or, given an
+    exact accumulator ``acc`` (parjam.net.exactsum), adds that energy to it exactly (summed
+    per lower end first, in pair order) and returns 0."""
     lib = library()
     if lib is not None:
         return lib.parjam_pair_forces(len(pi), pi, pj, pos, diam, L, pos.shape[1], alpha, eps,
-                                      lo, hi, out)
+                                      lo, hi, out, None if acc is None else acc.ctypes.data)
     _fallback()
-    return pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out)
+    return pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out, acc)
 
 
-def pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out):
-    """The numpy version of the compiled pair-force kernel (same arguments, same result): used
-    when the C kernel is not built, and as its reference in the tests."""
+def pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, out, acc=None):
+    """The numpy version of the compiled pair-force kernel (same arguments, the same bits): used
+    when the C kernel is not built, and as its reference in the tests.  The force on a particle
+    is summed as the C loop sums it: first as the upper end of its pairs (lower partners
+    ascending), then as the lower end (upper partners ascending)."""
     rij = pair_separation(pos[pi], pos[pj], L)
-    r = np.sqrt(np.einsum("ij,ij->i", rij, rij))
+    r2 = rij[:, 0] * rij[:, 0]
+    for a in range(1, pos.shape[1]):  # the C loop's order over the components
+        r2 = r2 + rij[:, a] * rij[:, a]
+    r = np.sqrt(r2)
     sigma = 0.5 * (diam[pi] + diam[pj])
     c = r < sigma
     i, j, rij, r, sigma = pi[c], pj[c], rij[c], r[c], sigma[c]
     fj = -(potential.dV(r, sigma, alpha, eps) / r)[:, None] * rij
     own_i = (i >= lo) & (i < hi)
     own_j = (j >= lo) & (j < hi)
-    idx = np.concatenate([i[own_i], j[own_j]]) - lo
+    idx = np.concatenate([j[own_j], i[own_i]]) - lo
     for a in range(pos.shape[1]):
-        w = np.concatenate([-fj[own_i, a], fj[own_j, a]])
+        w = np.concatenate([fj[own_j, a], -fj[own_i, a]])
         out[:, a] = np.bincount(idx, weights=w, minlength=hi - lo)
-    return potential.energy(r[own_i], sigma[own_i], alpha, eps).sum()
+    e = potential.energy(r[own_i], sigma[own_i], alpha, eps)
+    if acc is None:
+        return e.sum()
+    exactsum.partial(np.bincount(i[own_i] - lo, weights=e, minlength=hi - lo), acc)
+    return 0.0
 
 
 def fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi, pj, pos, diam,
-              alpha, eps, lo, hi, sums):
-    """One fused FIRE step on the owned particles (x, v, f, ref: (n_own, d) C arrays); see
-    ``parjam_fire_step`` in _kernels.c for the modes and the seven ``sums``.  Returns 1 when the
-    update found the neighbour list stale (no forces computed), else 0."""
+              alpha, eps, lo, hi, acc, nown=None):
+    """One fused FIRE step on the owned particles (x, v, f: (n_all, d) C arrays whose first
+    ``nown`` rows (default all) are owned and the rest ghosts, updated alike; ref: (nown, d));
+    see ``parjam_fire_step`` in _kernels.c for the modes and the buffer ``acc`` (FIRE_ACC
+    int64; ``fire_sums`` reads it).  Returns 1 when the update found the neighbour list stale
+    (no forces computed), else 0."""
+    nown = len(x) if nown is None else nown
     lib = library()
     if lib is not None:
-        return lib.parjam_fire_step(mode, len(x), x.shape[1], x, v, f, ref, L, dt, int(reset),
+        return lib.parjam_fire_step(mode, nown, len(x), x.shape[1], x, v, f, ref, L, dt,
+                                    int(reset),
                                     back, mix_v, mix_f, stale2, len(pi), pi, pj, pos, diam,
-                                    alpha, eps, lo, hi, sums)
+                                    alpha, eps, lo, hi, acc)
     _fallback()
     if mode & FIRE_UPDATE:
         if reset:
@@ -207,54 +236,93 @@ def fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi, 
         v += dt * f
         v[:] = mix_f * f + mix_v * v
         x += dt * v
-        if stale2 > 0.0 and _max_disp2(x, ref, L) >= stale2:
+        if stale2 > 0.0 and _max_disp2(x[:nown], ref, L) >= stale2:
             return 1
     if mode & FIRE_FORCES:
-        e = pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, f)
-        f2 = np.einsum("ij,ij->i", f, f)
-        v2 = np.einsum("ij,ij->i", v, v)
-        sums[:] = (e, np.vdot(f, v), f2.sum(), v2.sum(), f2.max(initial=0.0),
-                   v2.max(initial=0.0), _max_disp2(x, ref, L))
+        n = exactsum.ACC_LEN
+        acc[:] = 0
+        x, v, f = x[:nown], v[:nown], f[:nown]
+        pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, f, acc[:n])
+        p, f2, v2 = (np.zeros(len(x)) for _ in range(3))
+        for a in range(x.shape[1]):  # the C loop's order over the components
+            p += f[:, a] * v[:, a]
+            f2 += f[:, a] * f[:, a]
+            v2 += v[:, a] * v[:, a]
+        for k, part in enumerate((p, f2, v2)):
+            exactsum.partial(part, acc[(k + 1) * n:(k + 2) * n])
+        acc[FIRE_ACC - 3:] = np.array([f2.max(initial=0.0), v2.max(initial=0.0),
+                                       _max_disp2(x, ref, L)]).view(np.int64)
     return 0
 
 
-class FireKernel:
-    """``fire_step`` bound to its arrays (x, v, f, ref: (n_own, d); pi, pj; pos; diam; sums):
-    their addresses are taken once, so a call passes scalars only (ctypes' per-array checks cost
-    ~40 us a step, a tenth of a step at N = 4096).  The arrays must stay alive and in place
-    while it is used (ForceField keeps one per neighbour list and pair of Vecs)."""
+def fire_sums(acc, out=None):
+    """The seven numbers of a (reduced) fire_step buffer ``acc``: energy, F.v, |F|^2, |v|^2
+    (exact sums rounded to nearest), max |F_i|^2, max |v_i|^2, max displacement^2."""
+    out = np.empty(N_SUMS) if out is None else out
+    lib = library()
+    if lib is not None:
+        lib.parjam_fire_sums(acc, out)
+        return out
+    n = exactsum.ACC_LEN
+    out[:4] = [exactsum.value(acc[k * n:(k + 1) * n]) for k in range(4)]
+    out[4:] = acc[FIRE_ACC - 3:].view(np.float64)
+    return out
 
-    def __init__(self, x, v, f, ref, pi, pj, pos, diam, sums):
-        self.arrays = (x, v, f, ref, pi, pj, pos, diam, sums)
-        kinds = (np.float64,) * 4 + (np.int64,) * 2 + (np.float64,) * 3
+
+class FireKernel:
+    """``fire_step`` bound to its arrays (x, v, f: (n_all, d), the first ``nown`` rows owned;
+    ref: (nown, d); pi, pj; pos; diam; acc): their addresses are taken once, so a call passes
+    scalars only (ctypes' per-array checks cost ~40 us a step, a tenth of a step at
+    N = 4096).  The arrays must stay alive and in place while it is used (the engine keeps one
+    per neighbour list)."""
+
+    def __init__(self, x, v, f, ref, pi, pj, pos, diam, acc, nown=None):
+        self.arrays = (x, v, f, ref, pi, pj, pos, diam, acc)
+        kinds = (np.float64,) * 4 + (np.int64,) * 2 + (np.float64,) * 2 + (np.int64,)
         for a, kind in zip(self.arrays, kinds):
             if a.dtype != kind or not a.flags.c_contiguous:
                 raise ValueError("FireKernel needs C-contiguous float64/int64 arrays")
-        for a in (x, v, f, sums):
+        if len(acc) != FIRE_ACC:
+            raise ValueError(f"FireKernel's sums buffer holds FIRE_ACC = {FIRE_ACC} int64")
+        for a in (x, v, f, acc):
             if not a.flags.writeable:
-                raise ValueError("FireKernel writes x, v, f and sums")
-        self.nown, self.d, self.npairs = len(x), x.shape[1], len(pi)
+                raise ValueError("FireKernel writes x, v, f and acc")
+        self.nall, self.d, self.npairs = len(x), x.shape[1], len(pi)
+        self.nown = self.nall if nown is None else int(nown)
         lib = library()
         self.fn = None
         if lib is not None:
             fn = lib["parjam_fire_step"]  # a new function object: its own argtypes
             vp, dbl, i64 = ctypes.c_void_p, ctypes.c_double, ctypes.c_int64
             fn.restype = ctypes.c_int
-            fn.argtypes = [ctypes.c_int, i64, ctypes.c_int, vp, vp, vp, vp, dbl, dbl,
+            fn.argtypes = [ctypes.c_int, i64, i64, ctypes.c_int, vp, vp, vp, vp, dbl, dbl,
                            ctypes.c_int, dbl, dbl, dbl, dbl, i64, vp, vp, vp, vp, dbl, dbl, i64,
                            i64, vp]
             self.fn = fn
             self.ptr = [a.ctypes.data for a in self.arrays]
+            fs = lib["parjam_fire_sums"]
+            fs.restype = None
+            fs.argtypes = [vp, vp]
+            self.fs = fs
 
     def __call__(self, mode, L, dt, reset, back, mix_v, mix_f, stale2, alpha, eps, lo, hi):
         if self.fn is None:
-            x, v, f, ref, pi, pj, pos, diam, sums = self.arrays
+            x, v, f, ref, pi, pj, pos, diam, acc = self.arrays
             return fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi,
-                             pj, pos, diam, alpha, eps, lo, hi, sums)
-        x, v, f, ref, pi, pj, pos, diam, sums = self.ptr
-        return self.fn(mode, self.nown, self.d, x, v, f, ref, L, dt, 1 if reset else 0, back,
+                             pj, pos, diam, alpha, eps, lo, hi, acc, self.nown)
+        x, v, f, ref, pi, pj, pos, diam, acc = self.ptr
+        return self.fn(mode, self.nown, self.nall, self.d, x, v, f, ref, L, dt,
+                       1 if reset else 0, back,
                        mix_v, mix_f, stale2, self.npairs, pi, pj, pos, diam, alpha, eps, lo, hi,
-                       sums)
+                       acc)
+
+    def sums(self, out):
+        """``fire_sums`` of the bound buffer into ``out`` (N_SUMS float64, C), without
+        ctypes' per-call array checks."""
+        if self.fn is None:
+            return fire_sums(self.arrays[8], out)
+        self.fs(self.ptr[8], out.ctypes.data)
+        return out
 
 
 def _max_disp2(x, ref, L):

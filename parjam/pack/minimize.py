@@ -1,5 +1,6 @@
 """Energy minimisation to force balance: FIRE to a loose tolerance, then Newton steps with the
-exact Hessian through PETSc (KSP, MUMPS factorisation) down to the round-off floor.  For large
+exact Hessian (parjam.pack.newtonsolve: a MUMPS factorisation, or exact-sum conjugate gradients
+for large systems) down to the round-off floor.  For large
 systems (more than FIRE_TAIL_DOF degrees of freedom) FIRE goes on to the tolerance itself and
 Newton is only the fall-back when FIRE does not get there: a Newton step then costs thousands of
 FIRE steps.
@@ -9,63 +10,31 @@ Mater. Sci. 175, 109584 (2020), as an option); its names are re-exported here.  
 Levenberg-Marquardt shift mu ~ max|F| so that near-zero modes are damped while the residual is
 large, the d global translations projected out of the right-hand side and of the step, and a
 backtracking line search on the energy.
+
+Every number a decision here rests on is the same bits on any number of ranks: FIRE's (parjam.pack.fire),
+the energy and max |F| of a force evaluation (parjam.pack.forces), the translations removed
+(exact means) and Newton's steps (parjam.pack.newtonsolve's solvers).  So a minimisation ends in
+the same positions, bitwise, on 1 or P ranks.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from parjam import env
-from parjam.net import potential
-from parjam.vib import factor
+from parjam.net import exactsum, potential
 from parjam.pack import fire as fire_mod
-from parjam.logevents import FACTOR, event
+from parjam.pack import newtonsolve
 from parjam.pack.fire import SNAPSHOT_EVERY, FireParams, FireState, MinResult, fire  # noqa: F401
-
-
-# Above this many degrees of freedom Newton solves with CG + GAMG instead of a MUMPS LDL^T.
-# 3D N = 32768 quench at phi = 0.66 (98k dof, one rank): the Newton phase took 120 s with CG
-# against 380 s with MUMPS (21-35 s per factorisation), same minimum (docs/bench-pack.md).
-NEWTON_CG_DOF = 60000
-
-
-def _linear_solver(ff, H):
-    """KSP (preonly + Cholesky/LDL^T, MUMPS when available; options prefix ``newton_``) kept on
-    the force field, so that a refilled Hessian with the same pattern is refactorised
-    numerically only.  Above NEWTON_CG_DOF, or with ``-newton_ksp_type cg -newton_pc_type gamg``,
-    preconditioned CG replaces the factorisation (no fill: for very large N); its
-    negative-curvature exit then gates Newton instead of the inertia."""
-    PETSc = env.petsc()
-    ksp = ff.newton_ksp
-    if ksp is None:
-        ksp = PETSc.KSP().create(comm=ff.comm)
-        ksp.setOptionsPrefix("newton_")
-        if ff.n * ff.d > NEWTON_CG_DOF:
-            ksp.setType("cg")
-            ksp.getPC().setType("gamg")
-            ksp.setTolerances(rtol=1e-8, max_it=5000)
-        else:
-            factor.direct_cholesky(ksp, fallback="lu" if ff.comm.getSize() == 1 else None)
-        ksp.setFromOptions()
-        ff.newton_ksp = ksp
-    ksp.setOperators(H)
-    return ksp
+from parjam.pack.newtonsolve import NEWTON_CG_DOF, remove_translations  # noqa: F401
 
 
 def factor_shifted(ff, mu):
-    """Factorise H + mu I (kept on ff); returns its number of negative pivots (None: unknown)."""
-    ksp = _linear_solver(ff, ff.hessian(shift=mu))
-    factor.exact_inertia(ksp.getPC())
-    with event(FACTOR):
-        ksp.setUp()
-    return factor.negative_pivots(ksp.getPC())
-
-
-def remove_translations(ff, vec):
-    """Subtract the mean displacement/force per Cartesian direction (the d zero modes)."""
-    loc = ff.local(vec)
-    mean = ff.mpi.allreduce(loc.sum(axis=0)) / ff.n
-    loc -= mean
+    """Factorise H + mu I with the rank-independent solver kept on ff (parjam.pack.newtonsolve:
+    a MUMPS LDL^T on the first rank up to NEWTON_CG_DOF, else exact-sum CG); returns its number
+    of negative pivots (None: unknown, CG), the same on every rank (collective)."""
+    if ff.newton_ksp is None:
+        ff.newton_ksp = newtonsolve.solver_for(ff)
+    return ff.newton_ksp.factor(ff, mu)
 
 
 def _newton_shift(fmax):
@@ -96,13 +65,11 @@ def newton(ff, ftol, max_steps=60, progress=None):
             # contact network still rearranging), where Newton steps wander; FIRE goes on
             status = "saddle"
             break
-        ksp = ff.newton_ksp
         remove_translations(ff, f)
-        ksp.solve(f, dx)
-        if ksp.getConvergedReason() < 0:
-            # an iterative KSP (e.g. -newton_ksp_type cg -newton_pc_type gamg) met negative
-            # curvature (KSP_DIVERGED_INDEFINITE_*) or did not converge: the same gate as the
-            # inertia of a factorisation
+        if ff.newton_ksp.solve(ff, f, dx) < 0:
+            # an iterative solve (exact CG above NEWTON_CG_DOF, or -newton_ksp_type cg) met
+            # negative curvature or did not converge: the same gate as the inertia of a
+            # factorisation
             status = "saddle"
             break
         remove_translations(ff, dx)
@@ -234,6 +201,6 @@ def _force_scale(ff):
     """Mean contact force magnitude |V'(r)| over all contacts (0 if there are none)."""
     i, j, rij, r, sigma = ff.contacts()
     own = (i >= ff.lo) & (i < ff.hi)
-    tot = ff.mpi.allreduce(np.abs(potential.dV(r[own], sigma[own], ff.alpha, ff.eps)).sum())
+    tot = exactsum.fsum(ff.mpi, np.abs(potential.dV(r[own], sigma[own], ff.alpha, ff.eps)))
     cnt = ff.mpi.allreduce(int(own.sum()))
     return tot / cnt if cnt else 0.0

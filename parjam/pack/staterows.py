@@ -8,7 +8,8 @@ state comes from those rows:
 - the contact network from parjam.pack.jamnet on the slabs (energy, pressure, stress, N', Nc, the
   rattlers; bit-identical to network.analyze on one rank);
 - the hexatic order of 2D states (parjam.net.order's psi6) from the half-edges of the neighbours
-  closer than 1.25 sigma_ij on the slabs, summed per particle in the serial order;
+  closer than 1.25 sigma_ij on the slabs, summed per particle in the serial order, and over
+  particles exactly (the same bits on any number of ranks);
 - the rows of its file (``packing_rows``: h5md.write_packing's content, docs/file-format.md, which
   parjam.files.rowio.write_packing_rows writes): the rattler flags and every contact (i < j, its
   overlap, force and stiffness) are sent to the rank whose id block holds i and sorted there
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from parjam.net import potential
+from parjam.net import exactsum, potential
 from parjam.pack import jamnet
 from parjam.net.active import half_edges, home_rows, max_op
 from parjam.net.domain import as_mpi
@@ -91,7 +92,7 @@ class StateRows:
 
 def hexatic_order(rows, net):
     """(local <|psi6_j|>, global |<psi6_j>|) of a 2D state (parjam.net.order.hexatic_order's
-    definition and, on one rank, its values bitwise); NaN for 3D or no neighbours.  ``net``: the
+    definition, its values to round-off); NaN for 3D or no neighbours.  ``net``: the
     state's JamNetwork (its slabs).  Collective."""
     comm = as_mpi(rows.comm)
     if rows.d != 2:
@@ -112,12 +113,13 @@ def hexatic_order(rows, net):
     count = np.bincount(edges.i, minlength=n_own)
     has = count > 0
     psi = total[has] / count[has]
-    sums = comm.allreduce(np.array([np.abs(psi).sum(), psi.sum().real, psi.sum().imag,
-                                    float(has.sum())]))
-    if sums[3] == 0:
+    # exact sums (parjam.net.exactsum): the same bits on any number of ranks
+    sums = exactsum.totals(comm, np.abs(psi), psi.real, psi.imag)
+    count = comm.allreduce(int(has.sum()))
+    if count == 0:
         return float("nan"), float("nan")
-    mean = np.complex128(complex(sums[1], sums[2])) / np.float64(sums[3])  # numpy's division,
-    return float(sums[0] / sums[3]), float(np.abs(mean))  # as psi.mean()'s on one rank
+    mean = np.complex128(complex(sums[1], sums[2])) / np.float64(count)
+    return float(sums[0] / count), float(np.abs(mean))
 
 
 def packing_rows(rows, net):

@@ -1,8 +1,7 @@
 """Checkpoints inside a member (parjam.files.checkpoint): a `parjam pack` interrupted anywhere in a
 member's protocol resumes from its last checkpoint, loses and repeats no minimisation work, and
-ends with the same files, bitwise, as an uninterrupted run.  In-process tests run serially and
-with the two ranks sharing the member (distributed minimisation: there the same minimum to
-round-off, as between two uninterrupted runs)."""
+ends with the same files, bitwise, as an uninterrupted run -- also when the member is shared by
+two ranks, and when a run stopped on 2 ranks resumes on 1 or 3."""
 
 import os
 import shutil
@@ -23,7 +22,7 @@ from parjam.pack.forces import ForceField
 from parjam.pack.minimize import FireParams, MinResult, fire
 from parjam.pack.packing import random_packing
 from parjam.testing.gather import gather
-from parjam.testing.h5compare import assert_same_member, differences
+from parjam.testing.h5compare import differences
 
 ARGS = ["pack", "--dim", "3", "--n", "64", "--seed", "4", "--dphi", "1e-6", "1e-2", "-q"]
 STATES = ("phi_c", "dphi1.0e-06", "dphi1.0e-02")
@@ -65,26 +64,16 @@ def _attr(path, key):
         return f["parameters"].attrs[key]
 
 
-def _assert_same(out, reference, exact=True):
-    """Serially: bitwise.  A member shared by 2 ranks is not bitwise reproducible even without
-    interruption (its MUMPS factorisations are parallel; measured: positions of two identical
-    runs differ by up to 3e-9 near phi_c), so there: the same minimum to round-off -- phi_c to
-    1e-12, pressure to 1e-5 relative and positions of the non-rattlers to 1e-7 after removing
-    the global translation (a zero mode, like the rattlers' positions, which are not fixed).
-    The pressure at phi_c (p ~ 1e-8, overlaps ~ 1e-8) moves by ~ du / overlap relative when the
-    contacts move by du: 3e-9 differences allow 1e-6 or more, and 2-rank runs on a loaded
-    machine differed by 4-7e-7 (session 12; 1e-7 failed there); another minimum would differ
-    by order one."""
+def _assert_same(out, reference):
+    """Bitwise, on any number of ranks and whatever the ranks that wrote the checkpoint: a
+    member shared by several ranks is the same bits as on one (exact sums, Newton's steps on
+    one rank: tests/pack/test_rank_independence.py)."""
     for state in STATES:
         name = f"member0000_{state}.h5"
         a, b = os.path.join(out, name), os.path.join(reference, name)
-        if exact:
-            diff = differences(a, b)
-            # the count includes the evaluation that restarts an interrupted FIRE run
-            assert diff in ([], ["parameters/force_evaluations"]), (name, diff)
-            continue
-        with h5py.File(a, "r") as fa, h5py.File(b, "r") as fb:
-            assert_same_member(fa, fb, name)
+        diff = differences(a, b)
+        # the count includes the evaluation that restarts an interrupted FIRE run
+        assert diff in ([], ["parameters/force_evaluations"]), (name, diff)
 
 
 def test_fire_continues_bitwise_from_a_snapshot(world):
@@ -151,22 +140,10 @@ def test_pack_interrupted_at_the_kth_checkpoint_resumes_bitwise(world, shared_tm
     resumed = evaluations["n"] - first
     total = int(_attr(os.path.join(reference, "member0000_dphi1.0e-02.h5"),
                       "force_evaluations"))
-    serial = world.getSize() == 1
-    if serial:  # the same trajectory: no evaluation lost or repeated
-        assert 0 < resumed < total
-        assert first + resumed - total in (0, 1)
-    else:
-        # Newton's parallel MUMPS is not bitwise reproducible, so the minimisations after the
-        # first Newton take a few steps more or fewer than the uninterrupted run's, and an
-        # interruption in the first quench (k = 1) saves ~100 of ~20,000 evaluations, less than
-        # that spread.  Measured (session 12, 2 ranks): the same `pack` repeated in one process
-        # and in fresh processes used 20,173-20,306 evaluations on this engine and
-        # 20,127-20,144 on main's (so the strict bound held there by a margin of ~100 only);
-        # within one pack, re-solving a Newton step with the SAME MUMPS factors and right-hand
-        # side gave a different dx bitwise in 2 of 16 solves, refactorising the same matrix in
-        # 6 of 16 (up to 4e-8 relative), while FIRE alone resumes bitwise (the test above).
-        assert 0 < resumed and abs(first + resumed - total) <= 0.02 * total
-    _assert_same(out, reference, exact=serial)
+    # the same trajectory on any number of ranks: no evaluation lost or repeated
+    assert 0 < resumed < total
+    assert first + resumed - total in (0, 1)
+    _assert_same(out, reference)
     assert not os.path.exists(os.path.join(out, checkpoint.DIRECTORY))
 
 
@@ -189,7 +166,7 @@ def test_foreign_or_unreadable_checkpoint_is_ignored(world, shared_tmp, referenc
             checkpoint.write_file(path, '{"other": 1}', [rec], None)
     MPI.COMM_WORLD.Barrier()
     assert _pack(out) == 0
-    _assert_same(out, reference, exact=world.getSize() == 1)
+    _assert_same(out, reference)
 
 
 def test_record_of_another_volume_fraction_ends_the_replay(world, shared_tmp, monkeypatch,
@@ -215,7 +192,7 @@ def test_record_of_another_volume_fraction_ends_the_replay(world, shared_tmp, mo
             f["done/00002"].attrs["L"] *= 1.001
     world.tompi4py().Barrier()
     assert _pack(out) == 0
-    _assert_same(out, reference, exact=world.getSize() == 1)
+    _assert_same(out, reference)
 
 
 @pytest.mark.serial
@@ -333,7 +310,7 @@ def test_stopped_between_the_steps_of_a_write_resumes(world, shared_tmp, monkeyp
                                for n in orphans), orphans
     world.tompi4py().Barrier()
     assert _pack(out) == 0
-    _assert_same(out, reference, exact=world.getSize() == 1)
+    _assert_same(out, reference)
     assert not os.path.exists(os.path.join(out, checkpoint.DIRECTORY))
 
 
@@ -356,7 +333,7 @@ def test_checkpoint_of_the_format_before_is_ignored_with_a_note(world, shared_tm
     assert not ck.loaded
     assert len(notes) == 1 and "earlier format 1" in notes[0] and "ignored" in notes[0], notes
     assert _pack(out) == 0
-    _assert_same(out, reference, exact=world.getSize() == 1)
+    _assert_same(out, reference)
     assert not os.path.exists(os.path.join(out, checkpoint.DIRECTORY))
 
 
@@ -379,9 +356,7 @@ sys.exit(cli.main(sys.argv[2:]))
 def test_checkpoint_written_on_2_ranks_resumes_on_1_and_3(tmp_path):
     """The files are in particle-id order, whatever the ranks that wrote them: a checkpoint of a
     member shared by 2 ranks (stopped at its 100th write of ~200) resumes on 1 and on 3 ranks, each
-    reading its own rows, to the same minima as the uninterrupted 2-rank run (to round-off:
-    FIRE's sums over particles depend on the decomposition in round-off, as between 2-rank
-    runs)."""
+    reading its own rows, to the same files, bitwise, as the uninterrupted 2-rank run."""
     mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
     args = ARGS[:-1] + ["--checkpoint-every", "1e-9"]
 
@@ -400,5 +375,5 @@ def test_checkpoint_written_on_2_ranks_resumes_on_1_and_3(tmp_path):
         r = run(ranks, out, "-m", "parjam")
         assert r.returncode == 0, r.stderr
         assert "resuming from" in r.stderr and "minimisations finished" in r.stderr, r.stderr
-        _assert_same(str(out), str(tmp_path / "ref"), exact=False)
+        _assert_same(str(out), str(tmp_path / "ref"))
         assert not os.path.exists(out / checkpoint.DIRECTORY)

@@ -130,11 +130,12 @@ def test_numpy_fallback_warns_once_and_gives_the_same_forces(monkeypatch, capsys
     def compute():
         out = np.zeros_like(pack.pos)
         e = kernels.pair_forces(pi, pj, pack.pos, pack.diam, pack.L, 2.5, 1.0, 0, pack.n, out)
-        x, v, f, sums = pack.pos.copy(), v0.copy(), out.copy(), np.zeros(kernels.N_SUMS)
+        x, v, f = pack.pos.copy(), v0.copy(), out.copy()
+        acc = np.zeros(kernels.FIRE_ACC, dtype=np.int64)
         kernels.fire_step(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, x, v, f, pack.pos, pack.L,
                           0.05, False, -0.025, 0.9, 0.2, 0.0, pi, pj, x, pack.diam, 2.5, 1.0,
-                          0, pack.n, sums)
-        return e, out, x, f, sums
+                          0, pack.n, acc)
+        return e, out, x, f, kernels.fire_sums(acc)
 
     compiled = compute()
     assert "numpy" not in capsys.readouterr().err
@@ -219,8 +220,8 @@ def test_one_particle_moving_past_half_the_skin_rebuilds_everywhere(world, move,
     s = eng.start()
     before = eng.n_rebuilds
     x0 = np.array(gather(ff))
-    # no force term (f zeroed, mix_f = 0): v' = v, x' = x + dt v
-    eng.f[:] = 0.0
+    # no force term (f zeroed, the ghosts' copies too, mix_f = 0): v' = v, x' = x + dt v
+    eng.f_all[:] = 0.0
     s = eng.step(dt, False, 1.0, 0.0, s)
     x1 = np.array(gather(ff))
     assert np.abs(x1[0] - x0[0] - [move * ff.skin, 0, 0]).max() < 1e-12

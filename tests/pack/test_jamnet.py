@@ -1,9 +1,11 @@
 """The packing protocol's per-state network and stability check on the slabs (parjam.pack.jamnet,
 parjam.pack.stability; issue 18) against the serial references: network.analyze's numbers, the
 dense dynamical matrix of the non-rattlers and its LAPACK eigenvalues, and the serial energies
-along a line.  Bit-identical on one rank (the protocol's files do not change), to round-off on
-2 ranks (the MPI pass) and, through one serial test, on 3."""
+along a line.  The network's sums over contacts are exact (math.fsum of the serial terms) on
+any number of ranks; the rest bit-identical on one rank, to round-off on 2 ranks (the MPI pass)
+and, through one serial test, on 3."""
 
+import math
 import os
 
 import numpy as np
@@ -56,7 +58,21 @@ def test_network_numbers_equal_the_serial_ones(name):
     for got, want in ((net.energy, ref.energy), (net.pressure, ref.pressure),
                       (net.stress, ref.stress), (net.mean_force, ref.mean_force),
                       (net.mean_stiffness, k)):
-        assert close(got, want), (got, want)
+        assert np.allclose(got, want, rtol=1e-12, atol=0.0), (got, want)
+    # the sums over contacts are exact: math.fsum of the serial per-contact terms, bitwise, on
+    # any number of ranks
+    a, c = ref.all_contacts, ref.contacts
+    w = -potential.dV(a.r, a.sigma, pack.alpha, pack.eps) / a.r
+    stress = [[math.fsum(w * a.rij[:, i] * a.rij[:, j]) for j in range(pack.d)]
+              for i in range(pack.d)]
+    nc = len(c.r)
+    exact = {"energy": math.fsum(potential.energy(a.r, a.sigma, pack.alpha, pack.eps)),
+             "stress": np.array(stress) / pack.L ** pack.d,
+             "mean_force": math.fsum(np.abs(potential.dV(c.r, c.sigma, pack.alpha,
+                                                         pack.eps))) / nc,
+             "mean_stiffness": math.fsum(potential.d2V(c.r, c.sigma, pack.alpha, pack.eps)) / nc}
+    for key, want in exact.items():
+        assert np.array_equal(getattr(net, key), want), key
     # the residual force is a difference of sums near zero: round-off of the largest term
     assert close(net.max_force, ref.max_force, rtol=0.0, atol=1e-15 * ref.mean_force + 1e-30)
     # rattlers and the owned active rows: a partition of the particles, in id order per rank
@@ -154,7 +170,8 @@ def test_jammer_network_from_its_block_rows():
         net = jam.network()
         ref = network.analyze(pack)
         assert net.n_active == ref.n_active and net.n_contacts == ref.n_contacts
-        assert close(net.pressure, ref.pressure) and close(net.energy, ref.energy)
+        assert np.isclose(net.pressure, ref.pressure, rtol=1e-12, atol=0.0)
+        assert np.isclose(net.energy, ref.energy, rtol=1e-12, atol=0.0)
         ff = jam.ff
         shifted = wrap(pack.pos + 1e-3, pack.L)
         ff.set_rows(net.state.ids, shifted[net.state.ids])

@@ -4,7 +4,7 @@ them, with the counts the code paths imply."""
 import numpy as np
 
 from parjam import env, logevents
-from parjam.pack.fire import SNAPSHOT_EVERY, FireParams, fire
+from parjam.pack.fire import FireParams, fire
 from parjam.pack.forces import ForceField
 from parjam.pack.minimize import newton
 from parjam.pack.packing import random_packing
@@ -31,16 +31,16 @@ def test_events_count_kernel_calls_rebuilds_halo_and_newton(world):
     steps = res.fire_steps
     assert steps == 300
     # one kernel call per step on one rank (two when a rebuild interrupts it), plus the start;
-    # on several ranks the update and the forces are two calls, and every SNAPSHOT_EVERY steps
-    # the decomposition is redone (parjam.pack.engine.SlabEngine.resync) with one more force call
-    resyncs = steps // SNAPSHOT_EVERY if several else 0
-    assert (2 if several else 1) * steps + 1 + resyncs <= fired[logevents.FORCE]
+    # on several ranks the update and the forces are two calls
+    assert (2 if several else 1) * steps + 1 <= fired[logevents.FORCE]
     assert fired[logevents.FORCE] <= (2 if several else 1) * steps + 1 + fired[logevents.REBUILD]
     assert 0 < fired[logevents.REBUILD] < steps
     assert fired[logevents.MIGRATE] == fired[logevents.REBUILD]
-    # one reduction and one ghost refresh per step, the start and each resync
-    assert fired[logevents.ALLREDUCE] == (steps + 1 + resyncs if several else 0)
-    assert fired[logevents.HALO] == (steps + 1 + resyncs if several else 0)
+    # one reduction per step and the start's, with the ghosts' forces sent before it and
+    # received after it (two halo events), and the ghosts pulled at each rebuild
+    assert fired[logevents.ALLREDUCE] == (steps + 1 if several else 0)
+    assert fired[logevents.HALO] == (2 * (steps + 1) + fired[logevents.REBUILD] if several
+                                     else 0)
     assert fired[logevents.ASSEMBLY] == fired[logevents.FACTOR] == 0
     assert after[logevents.ASSEMBLY] > mid[logevents.ASSEMBLY]
     assert after[logevents.FACTOR] > mid[logevents.FACTOR]

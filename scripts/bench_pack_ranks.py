@@ -1,0 +1,223 @@
+#!/usr/bin/env python3
+"""FIRE steps of one packing on 1 and 2 ranks, this tree against an older one, interleaved in one
+run: the per-step time, the 2-rank speed-up and its breakdown into parjam's log events (force
+kernel, halo exchange, allreduce, neighbour rebuild, migration) and the wait that load
+imbalance causes.  Self-contained: writes JSON, prints a table.
+
+    source scripts/mpi-env
+    nice .venv/bin/python scripts/bench_pack_ranks.py --old house --n 4096 16384 65536 \\
+        --repeat 5 --json bench-out/pack-ranks.json
+
+``--old REV`` extracts that commit of this repository (git archive) into a temporary directory
+and runs it with this interpreter (its compiled kernels are built into $PARJAM_CACHE on first
+use); ``--old PATH`` uses a checkout as it is.  Each measurement is a fresh process
+(`mpirun -n P python bench_pack_ranks.py --worker ...`): a random start (3D, monodisperse,
+harmonic, phi = 0.70 by default) is first quenched for --warm FIRE steps (untimed, the same
+in both trees), then --steps FIRE steps are timed between barriers (wall time, and the process
+CPU time of the slowest rank).  The order of the (tree, ranks) runs is rotated from one repeat
+to the next, so that a change of load on a shared machine hits all of them alike; the table
+gives medians over the repeats, and the load average before and after.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+EVENTS = {"kernel": "parjam: force kernel", "allreduce": "parjam: FIRE allreduce",
+          "rebuild": "parjam: nbr rebuild", "halo": "parjam: halo exchange",
+          "migration": "parjam: migration"}
+
+
+def worker(args):
+    """One measurement on the ranks of this mpirun; rank 0 prints one JSON line."""
+    import numpy as np
+
+    from parjam import env
+
+    env.init()
+    PETSc = env.petsc()
+    from mpi4py import MPI
+
+    from parjam import logevents
+    from parjam.pack.fire import FireParams, fire
+    from parjam.pack.forces import ForceField
+    from parjam.pack.packing import random_packing
+
+    comm = PETSc.COMM_WORLD
+    mpi = comm.tompi4py()
+    n = args.n[0]
+    pack = random_packing(args.dim, n, args.phi, 2.0, "mono", 1.4,
+                          np.random.default_rng(args.seed))
+    ff = ForceField(comm, pack.diam, pack.L, args.dim, 2.0)
+    ff.set_positions(pack.pos)
+    del pack
+    fire(ff, 0.0, params=FireParams(max_steps=args.warm))
+    if args.steady:
+        return steady(args, ff, mpi, n)
+    PETSc.Log.begin()
+    names = [EVENTS[k] for k in EVENTS]
+    before = {n: logevents.event(n).getPerfInfo()["time"] for n in names}
+    counts0 = {n: logevents.event(n).getPerfInfo()["count"] for n in names}
+    mpi.Barrier()
+    t0, c0 = time.perf_counter(), time.process_time()
+    res = fire(ff, 0.0, params=FireParams(max_steps=args.steps))
+    mpi.Barrier()
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    ev = {k: logevents.event(n).getPerfInfo()["time"] - before[n] for k, n in EVENTS.items()}
+    cnt = {k: logevents.event(n).getPerfInfo()["count"] - counts0[n] for k, n in EVENTS.items()}
+    per_rank = mpi.gather({"cpu": cpu, "events": ev}, root=0)
+    if comm.getRank() == 0:
+        steps = res.fire_steps
+        kern = [r["events"]["kernel"] for r in per_rank]
+        out = {"n": n, "dim": args.dim, "ranks": comm.getSize(), "steps": steps,
+               "wall": wall, "ms_per_step": 1e3 * wall / steps,
+               "cpu_ms_per_step": 1e3 * max(r["cpu"] for r in per_rank) / steps,
+               "events_ms_per_step": {k: 1e3 * max(r["events"][k] for r in per_rank) / steps
+                                      for k in EVENTS},
+               "event_counts": cnt,
+               "kernel_imbalance": max(kern) / (sum(kern) / len(kern)) if sum(kern) else 1.0,
+               "energy": res.energy, "tree": os.path.dirname(os.path.dirname(
+                   os.path.abspath(logevents.__file__)))}
+        print("RESULT " + json.dumps(out), flush=True)
+    ff.destroy()
+
+
+def steady(args, ff, mpi, n):
+    """--steady: each of --steps engine steps timed alone (a fixed dt = 0.01 and mixing, as
+    FIRE's steady downhill phase), on rank 0 (the steps are synchronised by their allreduce):
+    the low percentiles are the steps no other job interrupted, even on a loaded machine."""
+    import numpy as np
+
+    eng = ff.start_engine()
+    s = eng.start()
+    times = np.empty(args.steps)
+    for k in range(args.steps):
+        t = time.perf_counter()
+        s = eng.step(0.01, False, 0.99, 0.01, s)
+        times[k] = time.perf_counter() - t
+    ff.stop_engine()
+    if mpi.Get_rank() == 0:
+        q = np.percentile(times, [10, 50]) * 1e3
+        out = {"n": n, "dim": args.dim, "ranks": mpi.Get_size(), "steps": args.steps,
+               "steady": True, "ms_per_step": float(q[0]), "p50_ms": float(q[1]),
+               "min_ms": float(times.min() * 1e3), "mean_ms": float(times.mean() * 1e3),
+               "cpu_ms_per_step": float("nan"), "energy": s.energy,
+               "events_ms_per_step": {k: float("nan") for k in EVENTS},
+               "kernel_imbalance": float("nan")}
+        print("RESULT " + json.dumps(out), flush=True)
+    ff.destroy()
+
+
+def old_tree(rev):
+    """A directory holding ``rev`` of this repository (or the path itself)."""
+    if os.path.isdir(rev):
+        return os.path.abspath(rev)
+    dest = tempfile.mkdtemp(prefix="parjam-old-")
+    archive = subprocess.run(["git", "-C", ROOT, "archive", rev], capture_output=True,
+                             check=True).stdout
+    subprocess.run(["tar", "-x", "-C", dest], input=archive, check=True)
+    return dest
+
+
+def run_one(tree, ranks, args, n):
+    mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
+    cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--n", str(n),
+           "--dim", str(args.dim), "--phi", str(args.phi), "--steps", str(args.steps),
+           "--warm", str(args.warm), "--seed", str(args.seed)] + (["--steady"] if args.steady
+                                                                   else [])
+    if ranks > 1:
+        cmd = mpirun + ["-n", str(ranks)] + cmd
+    env = dict(os.environ, PYTHONPATH=tree, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tree)
+    for line in r.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    raise RuntimeError(f"worker failed ({tree}, {ranks} ranks, N = {n}):\n{r.stderr[-2000:]}")
+
+
+def median(values):
+    v = sorted(values)
+    m = len(v) // 2
+    return v[m] if len(v) % 2 else 0.5 * (v[m - 1] + v[m])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--n", type=int, nargs="+", default=[4096, 16384, 65536])
+    ap.add_argument("--dim", type=int, default=3)
+    ap.add_argument("--phi", type=float, default=0.70)
+    ap.add_argument("--steps", type=int, default=1000, help="timed FIRE steps")
+    ap.add_argument("--warm", type=int, default=300, help="untimed FIRE steps first")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--old", default=None, help="git revision or checkout to compare with")
+    ap.add_argument("--json", default=None, help="write all runs and medians here")
+    ap.add_argument("--steady", action="store_true",
+                    help="time each step alone at a fixed dt and report its 10th percentile "
+                         "(the steps no other job interrupted) instead of FIRE's mean")
+    args = ap.parse_args()
+    if args.worker:
+        worker(args)
+        return
+    trees = {"new": ROOT}
+    if args.old:
+        trees["old"] = old_tree(args.old)
+    runs = []
+    load = [os.getloadavg()]
+    configs = [(t, p) for t in trees for p in args.ranks]
+    for n in args.n:
+        for rep in range(args.repeat):
+            k = rep % len(configs)
+            for tree, p in configs[k:] + configs[:k]:
+                r = run_one(trees[tree], p, args, n)
+                r.update(tree=tree, repeat=rep, load=os.getloadavg()[0])
+                runs.append(r)
+                print(f"N = {n} {tree:>3} P = {p}: {r['ms_per_step']:.3f} ms/step "
+                      f"(cpu {r['cpu_ms_per_step']:.3f}, load {r['load']:.1f})", flush=True)
+    load.append(os.getloadavg())
+    summary = []
+    for n in args.n:
+        row = {"n": n}
+        for tree in trees:
+            for p in args.ranks:
+                sel = [r for r in runs if r["n"] == n and r["tree"] == tree and r["ranks"] == p]
+                row[f"{tree}_{p}"] = median([r["ms_per_step"] for r in sel])
+                row[f"{tree}_{p}_cpu"] = median([r["cpu_ms_per_step"] for r in sel])
+                row[f"{tree}_{p}_events"] = {k: median([r["events_ms_per_step"][k] for r in sel])
+                                             for k in EVENTS}
+                row[f"{tree}_{p}_imbalance"] = median([r["kernel_imbalance"] for r in sel])
+            if 1 in args.ranks and 2 in args.ranks:
+                # the speed-up of each repeat (1 and 2 ranks of the same rotation), then the median
+                pairs = [(a["ms_per_step"], b["ms_per_step"]) for a in runs for b in runs
+                         if a["n"] == b["n"] == n and a["tree"] == b["tree"] == tree
+                         and a["repeat"] == b["repeat"] and a["ranks"] == 1 and b["ranks"] == 2]
+                row[f"{tree}_speedup"] = median([a / b for a, b in pairs])
+        if "old" in trees:
+            row["new_over_old_1"] = row["new_1"] / row["old_1"]
+        summary.append(row)
+    print(f"\nload average before {load[0][0]:.1f}, after {load[1][0]:.1f} "
+          f"(1/5/15 min: {', '.join(f'{x:.1f}' for x in load[1])})")
+    head = "| N | " + " | ".join(f"{t} {p} rank(s) ms/step" for t in trees for p in args.ranks)
+    head += " | " + " | ".join(f"{t} speed-up" for t in trees) + " |"
+    print(head)
+    for row in summary:
+        cells = [f"{row[f'{t}_{p}']:.3f}" for t in trees for p in args.ranks]
+        cells += [f"{row.get(f'{t}_speedup', float('nan')):.2f}" for t in trees]
+        print(f"| {row['n']} | " + " | ".join(cells) + " |")
+    if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+        with open(args.json, "w") as f:
+            json.dump({"args": vars(args), "load_before": load[0], "load_after": load[1],
+                       "runs": runs, "summary": summary}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
