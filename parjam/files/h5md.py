@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from parjam import __version__, env
-from parjam.files import outputs
+from parjam.files import inputs, outputs
 from parjam.net import potential
 from parjam.errors import ParjamError
 from parjam.net.network import contact_forces
@@ -248,8 +248,7 @@ def read_packing(path):
     """A Packing from an H5MD file (parjam's own or the reference layout), validated: every
     problem is a one-line ParjamError, never a traceback."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise ParjamError(f"{path}: no such file")
+    inputs.require(path)  # a FIFO, a directory, a loop: named, and never opened
     if not h5py.is_hdf5(path):
         raise ParjamError(f"{path}: not an HDF5 file")
     limit = MAX_PARTICLES * 3
@@ -370,7 +369,7 @@ def _check_distinct(path, pos, diam, L):
 
 def sha256(path):
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
+    with inputs.open_file(path) as fh:  # never blocks on a FIFO
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()

@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 from mpi4py import MPI
 
-from parjam.files import h5md, rowio
+from parjam.files import h5md, inputs, rowio
 from parjam.net import active
 from parjam.vib import observables
 from parjam.net.domain import as_mpi
@@ -157,7 +157,8 @@ def dos_record(omega, n_modes, bins=None, log=False, omega_min=None, plateau=Non
 def read_spectrum(path):
     """A spectrum file as a dict of arrays and attributes; ParjamError if it is not one."""
     path = os.fspath(path)
-    if not os.path.isfile(path) or not h5py.is_hdf5(path):
+    inputs.require(path)  # a FIFO, a directory, a loop: named, and never opened
+    if not h5py.is_hdf5(path):
         raise ParjamError(f"{path}: not an HDF5 file")
     try:
         with h5py.File(path, "r") as f:
