@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 
 from parjam import env
-from parjam.files import h5md, outputs, rowio
+from parjam.files import h5md, inputs, manifest, outputs, rowio
 from parjam.pack import ensemble
 from parjam.errors import ParjamError, UnjammedError
 from parjam.net.fluctuations import contact_fluctuations
@@ -32,6 +32,21 @@ EXIT_INTERRUPTED = 5
 
 
 # --------------------------------------------------------------------------- member files
+
+def owned(rel):
+    """What a run writes at a path relative to its output directory ("file", "dir" or None:
+    not the run's); parjam.files.outputs.tree_problems checks them before a run."""
+    parts = rel.split(os.sep)
+    if len(parts) == 1:
+        if parts[0] in ("stages", "figures"):
+            return "dir"
+        return "file" if parts[0] == "stage.log" or parts[0].startswith("summary-") else None
+    if parts[0] == "figures":
+        return "file" if len(parts) == 2 else None
+    if parts[0] == "stages":  # a stage's directory: its member files, a pack stage's manifest
+        return "dir" if len(parts) == 2 else (manifest.owned(os.path.join(*parts[2:])) or "file")
+    return None
+
 
 def write_part(path, data, attrs=None):
     """{state: {name: array or scalar}} -> /<state>/<name>, atomically."""
@@ -72,8 +87,8 @@ class Runner:
         self.counts = collections.Counter()
 
     # paths -------------------------------------------------------------------
-    def stage_dir(self, st):
-        return os.path.join(self.out, "stages", st.name)
+    def stage_dir(self, st):  # names are one path component (parjam.study.scene): inside out
+        return inputs.inside(self.out, "stages", st.name)
 
     def part_path(self, st, m):
         return os.path.join(self.stage_dir(st), f"member{m:04d}.h5")
@@ -82,7 +97,7 @@ class Runner:
         return os.path.join(self.pack_dirs[system.name], f"member{m:04d}_{label}.h5")
 
     def summary_path(self, st):
-        return os.path.join(self.out, f"summary-{st.system.name}-{st.key}.h5")
+        return inputs.inside(self.out, f"summary-{st.system.name}-{st.key}.h5")
 
     def failed_path(self, system, m):
         return os.path.join(self.pack_dirs[system.name], f"member{m:04d}.failed")
