@@ -323,6 +323,10 @@ def check_layout(path, pos_shape, diam_shape, edges):
     return float(edges[0])
 
 
+#: box edge over the smallest diameter: N = 5e7 spheres of diameter ratio 10 span ~1e5 (2D)
+MAX_SPAN = 1e8
+
+
 def value_problem(path, pos, diam, edges, L):
     """The first problem with (any rows of) positions and diameters, or None."""
     for name, arr in (("positions", pos), ("diameters", diam), ("box edges", edges)):
@@ -332,6 +336,9 @@ def value_problem(path, pos, diam, edges, L):
         return None
     if np.any(diam <= 0):
         return f"{path}: diameters and box edges must be positive"
+    if L / diam.min() > MAX_SPAN:  # also keeps every squared distance far from overflow
+        return (f"{path}: the box edge is {L / diam.min():.3g} smallest diameters: more than "
+                f"{MAX_SPAN:.0e}, which no packing parjam handles spans (N <= 5e7)")
     if L <= 2.0 * diam.max() * (1.0 + 1e-9):
         return (f"{path}: box edge {L:.6g} is not larger than twice the largest "
                 f"diameter {diam.max():.6g}")
