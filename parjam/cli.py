@@ -303,6 +303,8 @@ def check_inputs(args, petsc_args, comm):
         ident = inputs.identity(dest)
         for path in plain:
             if ident is not None and ident == inputs.identity(path):
+                # out of the database too: PETSc would still write it at its finalisation
+                env.petsc().Options().delValue(option[1:])
                 raise ParjamError(f"{option} {inputs.shown(dest)} is the input "
                                   f"{inputs.shown(path)}: refused (PETSc would overwrite it)")
 
