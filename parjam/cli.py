@@ -21,6 +21,7 @@ import numpy as np
 
 from parjam import __version__, env, faults, options
 from parjam.errors import ParjamError
+from parjam.files import petscfiles
 
 _PETSC_OPT = re.compile(r"^-[A-Za-z_][A-Za-z0-9_:]+$")
 _NUMBER = re.compile(r"^-?[0-9.]")
@@ -138,7 +139,7 @@ def main(argv=None):
     try:
         # options files, rc files, PETSC_OPTIONS and PETSc's output files, looked at before
         # PETSc reads them (a FIFO there blocks it, a self-including file crashes it)
-        why = options.startup_problem(petsc_args)
+        why = petscfiles.startup_problem(petsc_args)
         if why:
             raise ParjamError(why)
         env.init(petsc_args)

@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 
 from parjam import cli, options
 from parjam.errors import ParjamError
-from parjam.files import inputs
+from parjam.files import inputs, petscfiles
 from parjam.study import plan, scene
 from conftest import DATA
 
@@ -160,9 +160,9 @@ def test_option_checks_are_one_line(tmp_path_factory, tokens, lines):
         assert sorted(ours + petsc) == sorted(tokens)
         options.pairs(tokens)
         for option, path in options.destinations(tokens):
-            why = options.destination_problem(option, path)
+            why = petscfiles.destination_problem(option, path)
             assert why is None or "\n" not in why
-        why = options.startup_problem(tokens)
+        why = petscfiles.startup_problem(tokens)
         assert why is None or "\n" not in why
     finally:
         os.chdir(cwd)

@@ -17,7 +17,7 @@ import pytest
 
 from parjam import options, resources
 from parjam.errors import ParjamError
-from parjam.files import inputs, manifest, outputs
+from parjam.files import inputs, manifest, outputs, petscfiles
 from parjam.testing import hostile
 from conftest import DATA
 
@@ -136,33 +136,33 @@ def test_options_files_are_followed_and_cycles_refused(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "a.opts").write_text("# comment\n-options_file b.opts\n-modes_eps_nev 3\n")
     (tmp_path / "b.opts").write_text("-log_view :here.txt # trailing comment\n")
-    files, tokens = options.options_files(["-options_file", "a.opts"])
+    files, tokens = petscfiles.options_files(["-options_file", "a.opts"])
     assert files == ["a.opts", "b.opts"] and ("log_view", ":here.txt") in options.pairs(tokens)
     assert options.destinations(tokens) == [("-log_view", "here.txt")]
     (tmp_path / "b.opts").write_text("-options_file a.opts\n")
     with pytest.raises(ParjamError, match="includes itself"):
-        options.options_files(["-options_file", "a.opts"])
+        petscfiles.options_files(["-options_file", "a.opts"])
     os.mkfifo(tmp_path / "fifo.opts")
     with pytest.raises(ParjamError, match="a FIFO"):
-        options.options_files(["-options_file", "fifo.opts"])
+        petscfiles.options_files(["-options_file", "fifo.opts"])
 
 
 def test_startup_problems(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     monkeypatch.delenv("PETSC_OPTIONS", raising=False)
-    assert options.startup_problem(["-log_view", ":/nonexistent/x"]).startswith(
+    assert petscfiles.startup_problem(["-log_view", ":/nonexistent/x"]).startswith(
         "-log_view /nonexistent/x: /nonexistent is not a directory")
-    assert options.startup_problem(["-log_view", "ascii:ok.txt:ascii_info_detail"]) is None
-    assert options.startup_problem(["-modes_eps_view", "draw:host:0"]) is None  # a display
-    assert "no such file" in options.startup_problem(["-options_file", "/nonexistent"])
+    assert petscfiles.startup_problem(["-log_view", "ascii:ok.txt:ascii_info_detail"]) is None
+    assert petscfiles.startup_problem(["-modes_eps_view", "draw:host:0"]) is None  # a display
+    assert "no such file" in petscfiles.startup_problem(["-options_file", "/nonexistent"])
     monkeypatch.setenv("PETSC_OPTIONS", "-options_file /nonexistent -modes_eps_type bogus")
-    assert "no such file" in options.startup_problem([])
+    assert "no such file" in petscfiles.startup_problem([])
     assert options.all_user_args(["-x"]) == ["-x", "-options_file", "/nonexistent",
                                              "-modes_eps_type", "bogus"]
     monkeypatch.delenv("PETSC_OPTIONS")
     os.mkfifo(tmp_path / ".petscrc")
-    assert "a FIFO" in options.startup_problem([])
-    assert options.startup_problem(["-skip_petscrc"]) is None
+    assert "a FIFO" in petscfiles.startup_problem([])
+    assert petscfiles.startup_problem(["-skip_petscrc"]) is None
 
 
 def test_the_dump_of_a_failed_start_becomes_one_line():
