@@ -21,6 +21,7 @@ import numpy as np
 
 from parjam import __version__, env, faults, options
 from parjam.errors import ParjamError
+from parjam.files import petscfiles
 
 _PETSC_OPT = re.compile(r"^-[A-Za-z_][A-Za-z0-9_:]+$")
 _NUMBER = re.compile(r"^-?[0-9.]")
@@ -94,7 +95,37 @@ def build_parser():
     sub.required = True
     for mod in sorted(m.name for m in pkgutil.iter_modules(pkg.__path__)):
         importlib.import_module(f"parjam.commands.{mod}").add_parser(sub)
+    for name, command in sub.choices.items():
+        command.epilog = exit_codes(name)
+    parser.epilog = ("exit status: 0 done, 1 an unexpected failure (a bug: traceback shown), 2 "
+                     "bad input or an output that cannot be written (one line, nothing "
+                     "written), 3 not jammed, 4 modes: some modes did not converge, 5 run: "
+                     "interrupted, 130 interrupted by Ctrl-C; each command's --help lists its "
+                     "own")
     return parser
+
+
+#: exit statuses beyond the common ones (0, 1, 2, 130), per command
+EXIT_CODES = {
+    "pack": {3: "a member did not jam or its ladder unjammed (its jammed states are written)"},
+    "modes": {3: "the packing is not jammed (rattlers only, or too few contacts)",
+              4: "some requested modes did not converge to --tol (the converged ones are "
+                 "written, the others listed)"},
+    "moduli": {3: "the packing is not jammed"},
+    "lengths": {3: "the packing is not jammed"},
+    "softmodes": {3: "the packing is not jammed"},
+    "run": {5: "interrupted: the same command resumes"},
+}
+
+
+def exit_codes(command):
+    """The --help epilog of a command: its exit statuses."""
+    codes = {0: "done", 2: "bad input, or an output that cannot be written: one line on "
+                           "stderr, before any work, nothing written",
+             **EXIT_CODES.get(command, {}),
+             1: "an unexpected failure (a bug: the traceback is shown)",
+             130: "interrupted (Ctrl-C)"}
+    return "exit status: " + "; ".join(f"{k} {v}" for k, v in codes.items())
 
 
 def rank_and_size():
@@ -107,9 +138,15 @@ def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, petsc_args = split_petsc_args(argv)
     try:
+        # options files, rc files, PETSC_OPTIONS and PETSc's output files, looked at before
+        # PETSc reads them (a FIFO there blocks it, a self-including file crashes it)
+        why = petscfiles.startup_problem(petsc_args)
+        if why:
+            raise ParjamError(why)
         env.init(petsc_args)
-    except ParjamError as exc:  # a broken PETSC_DIR/SLEPC_DIR: before MPI, one line
-        print(f"parjam: error: {exc}", file=sys.stderr, flush=True)
+    except ParjamError as exc:  # before MPI (or PETSc's start failed): one line, from rank 0
+        if launcher_rank() == 0:
+            print(f"parjam: error: {one_line(exc)}", file=sys.stderr, flush=True)
         return exc.exit_code
     quiet_closed_stdout()
     rank, size = rank_and_size()
@@ -119,13 +156,16 @@ def main(argv=None):
         args = parser.parse_args(ours)
     except SystemExit as exc:  # argparse already printed its one-line usage error
         return int(exc.code or 0)
+    petsc_args = options.all_user_args(petsc_args)  # PETSC_OPTIONS: as the command line
     try:
         faults.point("command")  # PARJAM_FAULT testing hook (parjam/faults.py)
         code = _run_command(args, petsc_args)
         # a command is collective: return only when every rank is done, so the files that rank 0
         # wrote exist for whatever any rank does next (e.g. a script or test calling main twice);
         # the closing reduction also tells a rank whether a peer failed with a "collective" error
-        failed, worst = _closing_outcome(0)
+        # (or could not write its standard output: a full disk behind `> file`)
+        mine = _stdout_outcome()
+        failed, worst = _closing_outcome(mine)
         _warn_unused_options(petsc_args, args.command, collective=True)
         if failed:
             return worst
@@ -135,7 +175,7 @@ def main(argv=None):
             _warn_unused_options(petsc_args, args.command, collective=False)
         if rank == 0 or not exc.collective:
             prefix = f"[rank {rank}] " if size > 1 and not exc.collective else ""
-            print(f"parjam: error: {prefix}{exc}", file=sys.stderr, flush=True)
+            print(f"parjam: error: {prefix}{one_line(exc)}", file=sys.stderr, flush=True)
         if size > 1 and not exc.collective:
             _abort(exc.exit_code)
         if size > 1 and not _ended_together(exc):
@@ -148,11 +188,42 @@ def main(argv=None):
         return 130
     except Exception as exc:  # a bug or an unexpected failure: show it, end every rank
         traceback.print_exc()
-        print(f"parjam: error: [rank {rank}] {type(exc).__name__}: {exc}", file=sys.stderr,
-              flush=True)
+        print(f"parjam: error: [rank {rank}] {type(exc).__name__}: {one_line(exc)}",
+              file=sys.stderr, flush=True)
         if size > 1:
             _abort(1)
         return 1
+
+
+def one_line(message):
+    """A message on one line: control characters (a newline in a file name) escaped."""
+    text = str(message)
+    if any(ord(c) < 32 for c in text):
+        text = "".join(c if ord(c) >= 32 else repr(c)[1:-1] for c in text)
+    return text
+
+
+def launcher_rank():
+    """This process's rank as the MPI launcher set it (before MPI is initialised), 0 if none."""
+    for var in ("OMPI_COMM_WORLD_RANK", "PMIX_RANK", "PMI_RANK", "MV2_COMM_WORLD_RANK"):
+        text = os.environ.get(var, "")
+        if text.isdigit():
+            return int(text)
+    return 0
+
+
+def _stdout_outcome():
+    """2 if standard output could not be written (the disk behind ``> file`` is full, ``>
+    /dev/full``), with one line on this rank; else 0.  Flushes it first."""
+    stream = sys.stdout
+    if isinstance(stream, _ClosedPipeTolerantStream):
+        stream.flush()
+        if stream.failure:
+            print(f"parjam: error: standard output: cannot write ({stream.failure})",
+                  file=sys.stderr, flush=True)
+            stream.failure = None
+            return ParjamError.exit_code
+    return 0
 
 
 class _ClosedPipeTolerantStream:
@@ -163,6 +234,7 @@ class _ClosedPipeTolerantStream:
     def __init__(self, stream):
         self._stream = stream
         self.closed_pipe = False
+        self.failure = None  # why a write failed (not a closed pipe): reported at the end
 
     def _quiet(self):
         self.closed_pipe = True
@@ -177,11 +249,18 @@ class _ClosedPipeTolerantStream:
         except BrokenPipeError:
             self._quiet()
             return len(text)
+        except OSError as exc:  # ENOSPC, EIO, EDQUOT: said once at the end, the rest dropped
+            self.failure = self.failure or exc.strerror or str(exc)
+            self._quiet()
+            return len(text)
 
     def flush(self):
         try:
             self._stream.flush()
         except BrokenPipeError:
+            self._quiet()
+        except OSError as exc:
+            self.failure = self.failure or exc.strerror or str(exc)
             self._quiet()
 
     def __getattr__(self, name):
@@ -201,6 +280,7 @@ def _run_command(args, petsc_args):
     """The command; a PETSc error that a bad option value caused becomes a one-line ParjamError
     (parjam.options.option_error)."""
     PETSc = env.petsc()
+    check_inputs(args, petsc_args, PETSc.COMM_WORLD)
     try:
         return args.run(args)
     except PETSc.Error as exc:
@@ -208,6 +288,27 @@ def _run_command(args, petsc_args):
         if message is None:
             raise
         raise ParjamError(message) from None
+
+
+def check_inputs(args, petsc_args, comm):
+    """The input policy (parjam.files.inputs) for the files a command reads, declared by its
+    parser as ``reads`` (a function of the arguments giving (option, path) pairs or paths;
+    ``reads_directories``: directories are inputs too), before any work, on every rank at once;
+    and no file that PETSc's options write (``-log_view :FILE``) may be one of them."""
+    from parjam.files import inputs
+
+    reads = getattr(args, "reads", None)
+    paths = [p for p in (reads(args) if reads else []) if p is not None]
+    inputs.check(comm, paths, directory_ok=getattr(args, "reads_directories", False))
+    plain = [p[1] if isinstance(p, tuple) else p for p in paths]
+    for option, dest in options.destinations(petsc_args):
+        ident = inputs.identity(dest)
+        for path in plain:
+            if ident is not None and ident == inputs.identity(path):
+                # out of the database too: PETSc would still write it at its finalisation
+                env.petsc().Options().delValue(option[1:])
+                raise ParjamError(f"{option} {inputs.shown(dest)} is the input "
+                                  f"{inputs.shown(path)}: refused (PETSc would overwrite it)")
 
 
 def _warn_unused_options(petsc_args, command, collective):

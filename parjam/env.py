@@ -6,9 +6,11 @@ command-line argument that starts with ``-`` after parjam's own options reaches 
 database, so ``-log_view``, ``-eps_*``, ``-st_*`` and ``-ksp_*`` configure the solvers.
 """
 
+import contextlib
 import functools
 import os
 import sys
+import tempfile
 
 DEBIAN_PETSC_DIR = "/usr/lib/petscdir/petsc3.18/x86_64-linux-gnu-real"
 DEBIAN_SLEPC_DIR = "/usr/lib/slepcdir/slepc3.18/x86_64-linux-gnu-real"
@@ -72,12 +74,61 @@ def init(petsc_args=None):
                               f"{why or 'install petsc4py and slepc4py (see README.md)'}") \
                 from None
         args = [sys.argv[0]] + list(petsc_args or [])
-        petsc4py.init(args)
-        slepc4py.init(args)
+        with _stderr_captured() as captured:
+            try:
+                petsc4py.init(args)
+                slepc4py.init(args)
+                from petsc4py import PETSc  # noqa: F401  (PetscInitialize runs here)
+                failure = None
+            except Exception as exc:  # PETSc.Error: an options file PETSc's parser refused
+                failure = exc
+        if failure is not None:
+            from parjam.errors import ParjamError
+
+            raise ParjamError(f"PETSc did not start: {startup_message(captured.text, failure)}")
+        sys.stderr.write(captured.text)  # what MPI or PETSc said while starting, as it was
+        sys.stderr.flush()
         _initialised = True
     from petsc4py import PETSc
 
     return PETSc
+
+
+class _Captured:
+    text = ""
+
+
+@contextlib.contextmanager
+def _stderr_captured():
+    """File descriptor 2 redirected to a temporary file (PETSc's C code writes its error dump
+    there, not through Python); its text is in ``.text`` afterwards."""
+    captured = _Captured()
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield captured
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            captured.text = tmp.read().decode("utf-8", "replace")
+
+
+def startup_message(dump, exc):
+    """The one line of a PETSc error dump: the message after the error class (``Unknown first
+    token in options file F line 1: garbage``), else the error code."""
+    lines = [ln.split("PETSC ERROR:", 1)[1].strip() for ln in dump.splitlines()
+             if "PETSC ERROR:" in ln]
+    lines = [ln for ln in lines if ln and not ln.startswith(("---", "See ", "Petsc Release",
+                                                             "#", "Configure options"))
+             and " on a " not in ln]
+    if len(lines) >= 2:
+        return f"{lines[1]} ({lines[0].lower()})"
+    if lines:
+        return lines[0]
+    return f"error code {getattr(exc, 'ierr', exc)}"
 
 
 def petsc():

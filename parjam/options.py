@@ -12,6 +12,7 @@ combined with the options of those PETSc/SLEPc objects, plus PETSc's global opti
 import ctypes
 import difflib
 import functools
+import os
 
 import numpy as np
 
@@ -153,3 +154,69 @@ def option_error(exc, petsc_args):
     given = " ".join(petsc_args)
     return (f"PETSc rejected an option: {detail or f'error code {code}'} (PETSc options given: "
             f"{given})")
+
+
+# --------------------------------------------------------------------------- the user's options
+# PETSc reads its options (command line, PETSC_OPTIONS, -options_file and the rc files) inside
+# PetscInitialize: parjam.files.petscfiles looks at the files they name first, from the tokens
+# parsed here.
+
+
+def environment_args():
+    """The PETSc options of the PETSC_OPTIONS environment variable, as tokens (they reach the
+    options database like the command line's, so they get the same checks and messages)."""
+    import shlex
+
+    text = os.environ.get("PETSC_OPTIONS", "")
+    try:
+        return shlex.split(text)
+    except ValueError:  # an unbalanced quote: PETSc splits at white space
+        return text.split()
+
+
+def pairs(tokens):
+    """(name without dash, value or None) of option tokens: a value is the next token when it
+    is not itself an option (a negative number is a value)."""
+    out, k = [], 0
+    while k < len(tokens):
+        tok = tokens[k]
+        if tok.startswith("-") and len(tok) > 1 and not _is_number(tok):
+            nxt = tokens[k + 1] if k + 1 < len(tokens) else None
+            if nxt is not None and (not nxt.startswith("-") or _is_number(nxt)):
+                out.append((tok[1:], nxt))
+                k += 2
+                continue
+            out.append((tok[1:], None))
+        k += 1
+    return out
+
+
+#: viewer types whose second field is a file name (socket, draw, saws, glvis: a host or display)
+FILE_VIEWERS = ("", "ascii", "binary", "hdf5", "vtk", "matlab", "adios")
+
+
+def destinations(tokens):
+    """(option, file) of every file that options make PETSc write: viewers (``-log_view
+    :FILE``, ``-X_view ascii:FILE:format``, monitors), ``-log_trace FILE``, ``-info FILE``,
+    ``-history FILE``."""
+    out = []
+    for name, value in pairs(tokens):
+        if not value:
+            continue
+        path = None
+        if name in ("log_trace", "history"):
+            path = value
+        elif name == "info":
+            path = value.split(":", 1)[0] or None
+        elif ("view" in name or "monitor" in name) and ":" in value:
+            fields = value.split(":")
+            if fields[0] in FILE_VIEWERS and fields[1]:
+                path = fields[1]
+        if path:
+            out.append((f"-{name}", path))
+    return out
+
+
+def all_user_args(petsc_args):
+    """The command line's PETSc options and PETSC_OPTIONS' (for messages and warnings)."""
+    return list(petsc_args or []) + environment_args()

@@ -14,6 +14,7 @@ A plan that does not fit is refused with the reason (``--force`` runs it anyway)
 catch plans that are off by orders of magnitude, not a plan 10 % over.
 """
 
+import math
 import os
 import time
 
@@ -21,7 +22,7 @@ from parjam.errors import ParjamError
 
 MAX_DAYS = 30.0
 #: pack: peak resident memory of one process (MB) = BASE + PER_PARTICLE * N, from the measured
-#: 1.15 GB of a 3D N = 10^5 ladder (docs/scaling.md, session 8) and ~150 MB for the interpreter
+#: 1.15 GB of a 3D N = 10^5 ladder (docs/scaling.md) and ~150 MB for the interpreter
 #: with PETSc, h5py and numpy loaded; the positions, neighbour lists, Hessian and checkpoints of
 #: a member are not divided over the ranks that share it (conservative)
 PACK_BASE_MB = 150.0
@@ -89,11 +90,20 @@ def available_memory_mb():
             avail = left if avail is None else min(avail, left)
     override = os.environ.get("PARJAM_MEMORY_MB")  # tests and users who know better
     if override:
-        try:
-            avail = float(override)
-        except ValueError:
-            raise ParjamError(f"PARJAM_MEMORY_MB={override!r} is not a number") from None
+        avail = positive_setting("PARJAM_MEMORY_MB", override, "a number of megabytes")
     return avail
+
+
+def positive_setting(name, text, what):
+    """A PARJAM_* setting as a finite positive number: NaN would switch the check off (every
+    comparison with it is false), infinity or a negative value make it meaningless."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise ParjamError(f"{name}={text!r} is not {what}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise ParjamError(f"{name}={text!r} must be {what} above 0 and finite")
+    return value
 
 
 def time_limit_seconds(now=None):
@@ -104,10 +114,8 @@ def time_limit_seconds(now=None):
         return max(int(end) - now, 0.0), "the batch job's remaining time (SLURM_JOB_END_TIME)"
     text = os.environ.get("PARJAM_TIME_LIMIT")
     if text:
-        try:
-            return float(text), "PARJAM_TIME_LIMIT"
-        except ValueError:
-            raise ParjamError(f"PARJAM_TIME_LIMIT={text!r} is not a number of seconds") from None
+        return positive_setting("PARJAM_TIME_LIMIT", text, "a number of seconds"), \
+            "PARJAM_TIME_LIMIT"
     return MAX_DAYS * 86400.0, "parjam's sanity limit"
 
 

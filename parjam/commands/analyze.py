@@ -11,7 +11,9 @@ def add_parser(sub):
                        "pressure, energy per particle, phi and the residual force.")
     p.add_argument("files", nargs="+", help="packing HDF5 files")
     p.add_argument("--json", action="store_true", help="one JSON object per file")
-    p.set_defaults(run=run)
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="accepted like every command's -q: analyze prints its results only")
+    p.set_defaults(run=run, reads=lambda a: a.files)
 
 
 def run(args):

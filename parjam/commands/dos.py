@@ -40,7 +40,8 @@ def add_parser(sub):
                    help="kpm: probe entries +-1 (default) or Gaussian")
     k.add_argument("--kpm-bounds", help="kpm: lambda interval A,B enclosing the spectrum "
                    "(default: Lanczos estimate)")
-    p.set_defaults(run=run)
+    p.add_argument("-q", "--quiet", action="store_true", help="no summary line (warnings and errors still)")
+    p.set_defaults(run=run, reads=lambda a: a.spectra)
 
 
 MAX_BINS = 1_000_000  # bins cost memory and time linearly; 1e6 is finer than any spectrum needs
@@ -187,7 +188,8 @@ def write(args, dos, prov, line):
     with h5md.atomic_h5(args.out) as f:
         h5md.write_h5md_header(f, prov)
         modes_io.write_dos(f, dos)
-    print(line, flush=True)
+    if not getattr(args, "quiet", False):
+        print(line, flush=True)
     if args.plot:
         from parjam.plot.spectra import ensemble_dos_figure
 

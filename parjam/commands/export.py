@@ -6,7 +6,8 @@ def add_parser(sub):
     p = sub.add_parser("export", help="write a packing as extended XYZ (OVITO, ASE)")
     p.add_argument("file", help="packing HDF5 file")
     p.add_argument("--out", help="output .xyz (default: FILE with .xyz)")
-    p.set_defaults(run=run)
+    p.add_argument("-q", "--quiet", action="store_true", help="do not print the name of the file written")
+    p.set_defaults(run=run, reads=lambda a: [a.file])
 
 
 def run(args):
@@ -23,7 +24,8 @@ def run(args):
     def write():
         with outputs.atomic_path(out) as tmp:
             write_extxyz(tmp, pack, analyze(pack))
-        print(out)
+        if not args.quiet:
+            print(out)
 
     outputs.on_root(MPI.COMM_WORLD, write)
     return 0

@@ -30,7 +30,8 @@ def add_parser(sub):
                    help="dimension (default: from the file; LAMMPS: 2 when every z is equal)")
     p.add_argument("--alpha", type=float, default=2.0,
                    help="potential exponent when the file names none (default: 2)")
-    p.set_defaults(run=run)
+    p.add_argument("-q", "--quiet", action="store_true", help="do not print the summary line")
+    p.set_defaults(run=run, reads=lambda a: [a.file])
 
 
 def output_path(args):
@@ -62,9 +63,11 @@ def run(args):
 
     outputs.on_root(MPI.COMM_WORLD, write)
     if MPI.COMM_WORLD.Get_rank() == 0:
-        print(f"{out}: N = {pack.n}, d = {pack.d}, phi = {pack.phi:.6f}, "
-              f"{len(set(meta['species'].tolist()))} species, lengths x {meta['length_scale']:.6g}, "
-              f"N' = {net.n_active}, z = {net.z:.4f}, max|F| = {net.max_force:.2e}", flush=True)
+        if not args.quiet:
+            print(f"{out}: N = {pack.n}, d = {pack.d}, phi = {pack.phi:.6f}, "
+                  f"{len(set(meta['species'].tolist()))} species, lengths x "
+                  f"{meta['length_scale']:.6g}, N' = {net.n_active}, z = {net.z:.4f}, "
+                  f"max|F| = {net.max_force:.2e}", flush=True)
         if net.max_force > 1e-8:
             print(f"parjam: note: not in force balance (max|F| = {net.max_force:.1e}): "
                   f"`parjam pack --from {out}` minimises it", file=sys.stderr, flush=True)

@@ -43,7 +43,7 @@ def add_parser(sub):
                    help="relative width of the peak smoothing in log omega (default 0.05)")
     p.add_argument("--out", help="write /lengths/* to this HDF5 file")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, reads=lambda a: [a.packing])
 
 
 MAX_SAMPLES = 10_000

@@ -56,7 +56,7 @@ def add_parser(sub):
     p.add_argument("--out", required=True, help="spectrum file to write (.h5)")
     p.add_argument("--plot", help="PNG of D(omega), eps_perp/eps_par and participation")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, reads=lambda a: [a.packing])
 
 
 def output_paths(out, matrices):

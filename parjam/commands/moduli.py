@@ -22,7 +22,7 @@ def add_parser(sub):
     p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
     p.add_argument("--out", help="write /moduli/* (tensors, moduli, solver report) to this file")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, reads=lambda a: [a.packing])
 
 
 def run(args):

@@ -12,9 +12,13 @@ from parjam.pack.packing import DISPERSITIES
 from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DPHI, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
                              DEFAULT_PHI_START, DEFAULT_RATIO, LADDERS, PHIC_METHODS,
                              PackingProtocol, check_tolerances)
-from parjam.ranks import member_groups
+from parjam.ranks import GroupFailures, member_groups
 
 MAX_MEMBERS = 1_000_000
+DEFAULT_DIM, DEFAULT_N, DEFAULT_DISPERSITY = 3, 256, "mono"
+#: what a --from file decides (its d, N, diameters and phi): refused when given with it
+FILE_DECIDES = (("dim", "--dim"), ("n", "--n"), ("dispersity", "--dispersity"),
+                ("ratio", "--ratio"), ("phi_start", "--phi-start"))
 
 
 def add_parser(sub):
@@ -24,11 +28,14 @@ def add_parser(sub):
         "the O'Hern bisection, then phi_c + dphi for each dphi (or target pressures). One HDF5 "
         "file per member and state in --out. Members are spread over MPI ranks; with fewer "
         "members than ranks, ranks share a member (distributed minimisation).")
-    p.add_argument("--dim", type=int, default=3, help="dimension d, 2 or 3 (default 3)")
-    p.add_argument("--n", type=int, default=256, help="number of particles (>= 16)")
-    p.add_argument("--dispersity", default="mono", help="mono | bi (50:50) | poly (uniform)")
-    p.add_argument("--ratio", type=float, default=DEFAULT_RATIO,
-                   help="large/small diameter ratio for bi, width (max/min) for poly (1.4)")
+    # d, N, dispersity and ratio default to None so that --from can tell them given: the file
+    # decides them, and a value given with it would be ignored
+    p.add_argument("--dim", type=int, help="dimension d, 2 or 3 (default 3)")
+    p.add_argument("--n", type=int, help=f"number of particles (>= 16; default {DEFAULT_N})")
+    p.add_argument("--dispersity", help="mono | bi (50:50) | poly (uniform) (default mono)")
+    p.add_argument("--ratio", type=float,
+                   help="large/small diameter ratio for bi, width (max/min) for poly "
+                   f"({DEFAULT_RATIO})")
     p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
                    help="potential exponent (2 harmonic, 2.5 Hertz); must be > 1")
     g = p.add_mutually_exclusive_group()
@@ -75,12 +82,20 @@ def add_parser(sub):
     p.add_argument("--dry-run", action="store_true",
                    help="print the memory/time estimate and whether it fits this machine; stop")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, reads=lambda a: [("--from", a.start)])
 
 
 def validate(args):
     if getattr(args, "start", None):
+        given = [option for attr, option in FILE_DECIDES if getattr(args, attr, None) is not None]
+        if given:
+            raise ParjamError(f"--from {args.start} decides d, N, the diameters and phi: "
+                              f"{', '.join(given)} cannot be given with it")
         start_from_file(args)
+    for attr, default in (("dim", DEFAULT_DIM), ("n", DEFAULT_N),
+                          ("dispersity", DEFAULT_DISPERSITY), ("ratio", DEFAULT_RATIO)):
+        if getattr(args, attr, None) is None:
+            setattr(args, attr, default)
     if args.dim not in (2, 3):
         raise ParjamError(f"--dim must be 2 or 3, got {args.dim}")
     if args.n < 16:
@@ -105,7 +120,9 @@ def validate(args):
     lo, hi = args.energy_window
     if not (0 < lo < hi):
         raise ParjamError(f"--energy-window needs 0 < LOW < HIGH, got {lo} {hi}")
-    check_tolerances(args.ftol, args.energy_window, args.alpha, args.dim)
+    # the energy window defines phi_c only where the bisection runs (not for a --phi quench)
+    check_tolerances(args.ftol, args.energy_window, args.alpha, args.dim,
+                     bisection=args.phi is None)
     for phi in [args.phi, args.phi_start]:
         if phi is not None and not (0.05 <= phi < 1.0 + 0.5 * (args.dim == 2)):
             raise ParjamError(f"volume fraction {phi} is out of range (0.05 .. 1)")
@@ -117,10 +134,29 @@ def validate(args):
             raise ParjamError(f"--pressure values must lie in (0, 10), got {p}")
     if args.phi is None and args.pressure is None and args.dphi is None:
         args.dphi = list(DEFAULT_DPHI)
+    state_labels(args)  # two values that give one file name: refused here, before any work
     if args.phic_method == "extrapolate" and args.phi is not None:
         raise ParjamError("--phic-method extrapolate needs --dphi or --pressure, not --phi")
     if args.phi_start is None:
         args.phi_start = DEFAULT_PHI_START[args.dim]
+
+
+def state_labels(args):
+    """The labels of the states a member writes (its files are memberM_LABEL.h5, labelled as
+    parjam.pack.packing names them: dphi and pressures to 2 significant digits); two values
+    with one label would write one file and lose the other, so they are refused."""
+    if args.phi is not None:
+        return [f"phi{args.phi:.4f}"]
+    option, fmt = ("--dphi", "dphi{:.1e}") if args.dphi else ("--pressure", "p{:.1e}")
+    labels = {}
+    for value in args.dphi or args.pressure:
+        label = fmt.format(value)
+        if label in labels:
+            raise ParjamError(f"{option} {labels[label]:g} and {value:g} give the same state "
+                              f"label {label} (2 significant digits): their files would "
+                              f"overwrite each other; make them differ")
+        labels[label] = value
+    return ["phi_c"] * (args.phic_method == "bisect") + list(labels)
 
 
 def fits_machine(args, world):
@@ -240,7 +276,10 @@ def _run(args):
     stability.Settings.from_options()  # bad -stability_* options: refused before any work
     if fits_machine(args, world):  # --dry-run: the estimate only
         return 0
-    outputs.check(world, dirs=[("--out", args.out)])
+    # the directory, and what pack writes in it: no symlink, FIFO or device at a member's,
+    # the manifest's or a checkpoint's name, none of them the --from file (by identity)
+    outputs.check(world, dirs=[("--out", args.out)], inputs=[args.start] if args.start else [],
+                  trees=[("--out", args.out, manifest.owned)])
     outcome = None
     if world.getRank() == 0:
         try:
@@ -264,26 +303,50 @@ def _run(args):
     rows, incomplete = [], []
     stage = PETSc.Log.Stage("parjam pack")
     stage.push()
-    for m in mine:
-        try:
-            rows += pack_member(protocol, m, comm,
-                                progress.group(comm, f"member {m} of {args.members}: "), params)
-        except MemberIncomplete as exc:  # its jammed states are written; the others go on
-            rows += exc.rows
-            if comm.getRank() == 0:
-                incomplete.append((exc.member, exc.step, exc.n_states))
-    stage.pop()
+    # a group's one-line failure (a full disk at a member's file or checkpoint) ends every
+    # group, with that line, instead of leaving the others waiting for it (parjam.ranks)
+    failures = GroupFailures(mpi)
+    failure = None
+    try:
+        for m in mine:
+            if comm.tompi4py().bcast(failures.pending() if comm.getRank() == 0 else None):
+                break  # another group failed: its line ends the run
+            try:
+                rows += pack_member(protocol, m, comm,
+                                    progress.group(comm, f"member {m} of {args.members}: "),
+                                    params)
+            except MemberIncomplete as exc:  # its jammed states are written; the others go on
+                rows += exc.rows
+                if comm.getRank() == 0:
+                    incomplete.append((exc.member, exc.step, exc.n_states))
+            except ParjamError as exc:
+                if not exc.collective:  # one rank alone: the command line aborts every rank
+                    raise
+                failure = (exc.exit_code, str(exc))
+                failures.announce(*failure)
+                break
+    finally:
+        stage.pop()
     relay.close()
+    failure = failures.agree(failure)
+    if failure is not None:
+        error = ParjamError(failure[1])
+        error.exit_code = failure[0]
+        raise error
     all_rows = mpi.gather(rows, root=0)
     incomplete = mpi.gather(incomplete, root=0)
-    if world.getRank() == 0:
+    incomplete = [entry for part in (incomplete or []) for entry in part]
+
+    def finish():  # rank 0; a full disk at the manifest is one line on every rank
         from parjam.files import checkpoint
 
         checkpoint.remove_empty_directory(args.out)
-        incomplete = [entry for part in incomplete for entry in part]
         finished, _ = manifest.finished_members(args.out, params)
         manifest.write_manifest(args.out, params, finished,
                                 {m: step for m, step, _ in incomplete})
+
+    outputs.on_root(world, finish)
+    if world.getRank() == 0:
         for m, files in sorted(done.items()):
             all_rows.append(rows_from_files(args.out, m, files))
         print_table([r for part in all_rows for r in part])

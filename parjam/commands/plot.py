@@ -73,7 +73,7 @@ def add_parser(sub):
     p.add_argument("--ncut", type=int, default=20, help="softfig: contacts cut (20)")
     p.add_argument("--omega-max", type=float, help="structure: top of the frequency axis")
     p.add_argument("-q", "--quiet", action="store_true", help="print nothing")
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, reads=lambda a: a.inputs, reads_directories=True)
 
 
 # --------------------------------------------------------------------------- inputs

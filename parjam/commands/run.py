@@ -22,7 +22,7 @@ from parjam import env, resources
 from parjam.files import outputs
 from parjam.progress import Progress, Relay
 from parjam.study import plan, scene as scene_mod
-from parjam.study.runner import Runner
+from parjam.study.runner import Runner, owned as runner_owned
 
 
 def add_parser(sub):
@@ -38,7 +38,7 @@ def add_parser(sub):
     p.add_argument("--force", action="store_true",
                    help="run even if the memory/time estimate does not fit this machine")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, reads=lambda a: [a.scene])
 
 
 def draw(pictures):
@@ -58,13 +58,16 @@ def run(args):
     world = env.petsc().COMM_WORLD
     need = plan.machine_need(scene, stages, world.getSize(),
                              resources.ranks_on_node(world.tompi4py()))
+    out = args.out or os.path.join("results", scene.name)
     if args.dry_run:
         text = resources.describe(*need)
         if world.getRank() == 0:
-            print(plan.describe(scene, stages) + "\n" + text, flush=True)
+            print(plan.describe(scene, stages) + f"\nresults in {out}\n" + text, flush=True)
         return 0
-    out = args.out or os.path.join("results", scene.name)
-    outputs.check(world, dirs=[("--out", out)], inputs=[args.scene])
+    # the directory, and what a run writes in it: no symlink, FIFO or device at a stage's,
+    # summary's or log's name, none of them the scene file (by identity)
+    outputs.check(world, dirs=[("--out", out)], inputs=[args.scene],
+                  trees=[("--out", out, runner_owned)])
     resources.check(world, need[0], need[1], args.force, f"scene {scene.name!r}")
     relay = Relay(world.tompi4py())  # every rank group's member lines reach world rank 0
     progress = Progress(world.tompi4py(), args.quiet, "run: ", relay=relay)

@@ -48,7 +48,7 @@ def add_parser(sub):
                    help="analyse a packing that is not isostatic (Nc != Nc_iso) anyway")
     p.add_argument("--out", required=True, help="output HDF5 file")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, reads=lambda a: [a.packing])
 
 
 def validate(args):

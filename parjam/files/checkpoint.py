@@ -181,16 +181,21 @@ class Checkpoint:
     def write(self):
         """Write the index now (group rank 0; collective: every rank of the group calls it),
         naming the pieces written so far, then remove the pieces it no longer names."""
+        problem = None
         if self.mpi.Get_rank() == 0:
             try:
                 write_file(self.path, self.params, self.done, self.pending,
                            self.generation + 1)
-            except (OSError, ParjamError) as exc:  # e.g. a full disk: every rank ends, one line
-                raise ParjamError(f"cannot write checkpoint {self.path}: {exc}",
-                                  collective=False) from None
-            named = [rec["file"] for rec in self.done]
-            checkpointio.remove_unnamed(self.path, named + ([self.pending["file"]]
-                                                            if self.pending else []))
+            except (OSError, ParjamError) as exc:  # e.g. a full disk
+                problem = f"cannot write checkpoint {self.path}: {exc}"
+            else:
+                named = [rec["file"] for rec in self.done]
+                checkpointio.remove_unnamed(self.path, named + ([self.pending["file"]]
+                                                                if self.pending else []))
+        if self.mpi.Get_size() > 1:  # the group's ranks end together, with one line
+            problem = self.mpi.bcast(problem, root=0)
+        if problem:
+            raise ParjamError(problem)
         self.generation += 1
         self._written = time.monotonic()
         faults.point("pack.checkpoint")  # PARJAM_FAULT testing hook (parjam/faults.py)

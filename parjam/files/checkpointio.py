@@ -29,7 +29,7 @@ import os
 import h5py
 import numpy as np
 
-from parjam.files import h5md, rowio
+from parjam.files import h5md, inputs, rowio
 from parjam.pack.minimize import FireState, MinimiseState, MinResult
 
 FORMAT = 2
@@ -60,7 +60,7 @@ def write_rows(comm, path, blocks):
 
 def read_rows(path, name, lo, hi):
     """Rows [lo, hi) of dataset ``name`` of a piece (this rank only)."""
-    with h5py.File(path, "r") as f:
+    with _h5(path) as f:
         ds = f[name]
         if ds.ndim != 2 or ds.shape[0] < hi:
             raise ValueError(f"{os.path.basename(path)}: /{name} has shape {ds.shape}")
@@ -88,9 +88,18 @@ def write_index(path, params, generation, done, pending):
                  **{key: getattr(st.fire, key) for key in FIRE_KEYS}})
 
 
+def _h5(path):
+    """An HDF5 file of the checkpoint, read only if it is a regular file (a FIFO put there would
+    block the open): ValueError, the damaged-checkpoint error, otherwise."""
+    what = inputs.kind(path)
+    if what is not None:
+        raise ValueError(f"{path} is {what}")
+    return h5py.File(path, "r")
+
+
 def read_format(path):
     """The format number of an index (1: parjam's earlier whole-file checkpoint)."""
-    with h5py.File(path, "r") as f:
+    with _h5(path) as f:
         return int(f.attrs["format"])
 
 
@@ -99,7 +108,7 @@ def read_index(path):
     FIRE velocities are None (each rank reads its rows of the piece).  Raises OSError,
     KeyError or ValueError for a damaged one, or one whose pieces are missing."""
     here = pieces_dir(path)
-    with h5py.File(path, "r") as f:
+    with _h5(path) as f:
         if int(f.attrs["format"]) != FORMAT:
             raise ValueError(f"format {f.attrs['format']} (this parjam reads {FORMAT})")
         done = []

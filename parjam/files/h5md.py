@@ -14,7 +14,7 @@ import h5py
 import numpy as np
 from parjam import __version__, env
 from parjam.errors import ParjamError
-from parjam.files import outputs
+from parjam.files import inputs, outputs
 from parjam.net.system import Packing, coinciding_pairs, wrap
 
 
@@ -242,8 +242,7 @@ def read_packing(path):
     """A Packing from an H5MD file (parjam's own or the reference layout), validated: every
     problem is a one-line ParjamError, never a traceback."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise ParjamError(f"{path}: no such file")
+    inputs.require(path)  # a FIFO, a directory, a loop: named, and never opened
     if not h5py.is_hdf5(path):
         raise ParjamError(f"{path}: not an HDF5 file")
     limit = MAX_PARTICLES * 3
@@ -318,6 +317,10 @@ def check_layout(path, pos_shape, diam_shape, edges):
     return float(edges[0])
 
 
+#: box edge over the smallest diameter: N = 5e7 spheres of diameter ratio 10 span ~1e5 (2D)
+MAX_SPAN = 1e8
+
+
 def value_problem(path, pos, diam, edges, L):
     """The first problem with (any rows of) positions and diameters, or None."""
     for name, arr in (("positions", pos), ("diameters", diam), ("box edges", edges)):
@@ -327,6 +330,9 @@ def value_problem(path, pos, diam, edges, L):
         return None
     if np.any(diam <= 0):
         return f"{path}: diameters and box edges must be positive"
+    if L / diam.min() > MAX_SPAN:  # also keeps every squared distance far from overflow
+        return (f"{path}: the box edge is {L / diam.min():.3g} smallest diameters: more than "
+                f"{MAX_SPAN:.0e}, which no packing parjam handles spans (N <= 5e7)")
     if L <= 2.0 * diam.max() * (1.0 + 1e-9):
         return (f"{path}: box edge {L:.6g} is not larger than twice the largest "
                 f"diameter {diam.max():.6g}")
@@ -360,7 +366,7 @@ def _check_distinct(path, pos, diam, L):
 
 def sha256(path):
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
+    with inputs.open_file(path) as fh:  # never blocks on a FIFO
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()

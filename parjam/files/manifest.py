@@ -21,7 +21,7 @@ import re
 
 import h5py
 
-from parjam.files import outputs
+from parjam.files import inputs, outputs
 from parjam.files.checkpoint import DIRECTORY
 from parjam.errors import ParjamError
 from parjam.files.h5md import sha256
@@ -61,7 +61,7 @@ def write_json(path, obj):
 
 def _read_json(path):
     try:
-        with open(path) as fh:
+        with inputs.open_file(path, "r") as fh:  # a FIFO or a device here: refused, not read
             return json.load(fh)
     except (OSError, ValueError) as exc:
         raise ParjamError(f"{path}: unreadable manifest ({exc}); remove it to start afresh") \
@@ -93,6 +93,24 @@ def _check_record(path, rec):
         raise _bad(path, "parameters must be a JSON object")
     _check_files(path, rec.get("files"))
     return rec
+
+
+_MEMBER_FILE = re.compile(r"^member\d{4,}_.+\.h5$")
+
+
+def owned(rel):
+    """What parjam pack writes at a path relative to DIR: "file", "dir" or None (not pack's: a
+    user's file beside them); parjam.files.outputs.tree_problems checks them before a run."""
+    parts = rel.split(os.sep)
+    if len(parts) == 1:
+        if parts[0] == NAME or _MEMBER_FILE.match(parts[0]):
+            return "file"
+        return "dir" if parts[0] in (RECORDS, DIRECTORY) else None
+    if parts[0] == RECORDS:
+        return "file" if len(parts) == 2 else None
+    if parts[0] == DIRECTORY:  # memberM.h5 and its pieces in memberM.d/
+        return "dir" if len(parts) == 2 and parts[1].endswith(".d") else "file"
+    return None
 
 
 def record_path(out, member):
@@ -150,6 +168,9 @@ def check_parameters(out, params):
 
 
 def _check_file(path, params, out):
+    why = inputs.problem(path)
+    if why:  # a FIFO or a device named like a packing: never opened
+        raise ParjamError(f"{why}; it is in the output directory {out}: remove it")
     try:
         with h5py.File(path, "r") as f:
             attrs = dict(f["parameters"].attrs) if "parameters" in f else {}

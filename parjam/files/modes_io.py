@@ -24,7 +24,7 @@ import os
 import h5py
 import numpy as np
 
-from parjam.files import h5md, rowio
+from parjam.files import h5md, inputs, rowio
 from parjam.net.active import home_rows
 from parjam.net.domain import as_mpi
 from parjam.errors import ParjamError
@@ -119,7 +119,8 @@ def write_dos(f, dos):
 def read_spectrum(path):
     """A spectrum file as a dict of arrays and attributes; ParjamError if it is not one."""
     path = os.fspath(path)
-    if not os.path.isfile(path) or not h5py.is_hdf5(path):
+    inputs.require(path)  # a FIFO, a directory, a loop: named, and never opened
+    if not h5py.is_hdf5(path):
         raise ParjamError(f"{path}: not an HDF5 file")
     try:
         with h5py.File(path, "r") as f:

@@ -122,9 +122,74 @@ def dir_problem(path, option="--out"):
     return f"{option} {path}: cannot create it ({why})" if why else None
 
 
-def problems(files=(), dirs=(), inputs=()):
+MAX_TREE_ENTRIES = 10_000_000  # a directory output larger than this is not looked through
+
+
+def tree_problems(option, root, owned, inputs=()):
+    """Problems of the entries parjam writes inside an existing directory output ``root``:
+    ``owned(relative path)`` says "file", "dir" or None (not parjam's: left alone, not looked
+    into).  An owned entry must be absent or what parjam makes there: not a symlink (parjam
+    makes none, and writing through one would replace the file it names, an input say), not a
+    FIFO or device (reading it blocks), not a file where a directory belongs or the reverse,
+    and not one of the ``inputs`` by identity (a hard link)."""
+    root = os.fspath(root)
+    if not os.path.isdir(root):
+        return []
+    idents = {}
+    for inp in inputs:
+        try:
+            st = os.stat(inp)
+            idents[(st.st_dev, st.st_ino)] = inp
+        except OSError:
+            pass
+    out, seen = [], 0
+    stack = [""]
+    while stack and not out:
+        rel_dir = stack.pop()
+        try:
+            names = sorted(os.listdir(os.path.join(root, rel_dir)))
+        except OSError:
+            continue
+        for name in names:
+            seen += 1
+            if seen > MAX_TREE_ENTRIES:
+                return out
+            rel = os.path.join(rel_dir, name)
+            want = owned(rel)
+            if want is None:
+                continue
+            why = _entry_problem(os.path.join(root, rel), want, idents)
+            if why:
+                out.append(f"{option} {root}: {rel} {why}: refused (parjam writes its own files "
+                           f"there; remove or rename it)")
+                break
+            if want == "dir" and os.path.isdir(os.path.join(root, rel)):
+                stack.append(rel)
+    return out
+
+
+def _entry_problem(path, want, idents):
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    if stat.S_ISLNK(st.st_mode):
+        return f"is a symlink (to {os.readlink(path)})"
+    if stat.S_ISDIR(st.st_mode):
+        return None if want == "dir" else "is a directory"
+    if not stat.S_ISREG(st.st_mode):
+        return f"is {_kind(st.st_mode)}"
+    if want == "dir":
+        return "is a file where parjam keeps a directory"
+    if (st.st_dev, st.st_ino) in idents:
+        return f"is the input {idents[(st.st_dev, st.st_ino)]}"
+    return None
+
+
+def problems(files=(), dirs=(), inputs=(), trees=()):
     """Every problem of a command's outputs: ``files`` and ``dirs`` are (option, path) pairs
-    (path None: not asked for), ``inputs`` the paths the command reads."""
+    (path None: not asked for), ``inputs`` the paths the command reads, ``trees`` (option,
+    directory, owned) of directory outputs whose entries parjam writes (:func:`tree_problems`)."""
     files = [(o, os.fspath(p)) for o, p in files if p is not None]
     dirs = [(o, os.fspath(p)) for o, p in dirs if p is not None]
     out = []
@@ -148,14 +213,17 @@ def problems(files=(), dirs=(), inputs=()):
         if key in seen or any(same_file(path, p) for p in seen.values()):
             out.append(f"{option} {path} names the same file as another output")
         seen[key] = path
+    if not out:
+        for option, root, owned in trees:
+            out += tree_problems(option, root, owned, inputs)
     return out
 
 
-def check(comm=None, files=(), dirs=(), inputs=()):
+def check(comm=None, files=(), dirs=(), inputs=(), trees=()):
     """Refuse bad outputs before any work, on every rank at once (one line, exit 2).  ``comm``
     is an mpi4py or petsc4py communicator (None: this process alone); rank 0 looks."""
     mpi = _mpi(comm)
-    found = problems(files, dirs, inputs) if mpi is None or mpi.Get_rank() == 0 else None
+    found = problems(files, dirs, inputs, trees) if mpi is None or mpi.Get_rank() == 0 else None
     if mpi is not None and mpi.Get_size() > 1:
         found = mpi.bcast(found, root=0)
     if found:

@@ -45,7 +45,7 @@ import h5py
 import numpy as np
 
 from parjam import env
-from parjam.files import h5md, outputs
+from parjam.files import h5md, inputs, outputs
 from parjam.net.active import row_block
 from parjam.net.domain import as_mpi
 from parjam.errors import ParjamError
@@ -123,8 +123,7 @@ def read_validated(comm, path):
 
 def read_block(comm, path):
     """Metadata checks and this rank's rows, unvalidated values."""
-    if not os.path.isfile(path):
-        raise ParjamError(f"{path}: no such file")
+    inputs.require(path)  # a FIFO, a directory, a loop: named, and never opened
     if not h5py.is_hdf5(path):
         raise ParjamError(f"{path}: not an HDF5 file")
     with h5py.File(path, "r") as f:

@@ -26,7 +26,8 @@ OVERLAP_MAX = 1e-3  # a "phi_c" state with larger overlaps is not near jamming
 WINDOW_MIN_RATIO = 1.05  # HIGH/LOW: a narrower window is hit only by luck
 
 
-def check_tolerances(ftol, energy_window, alpha, d, names=("--ftol", "--energy-window")):
+def check_tolerances(ftol, energy_window, alpha, d, names=("--ftol", "--energy-window"),
+                     bisection=True):
     """Refuse an --energy-window or --ftol that cannot define a jammed state, with the reason.
 
     A state with E/N = LOW has overlaps delta ~ (alpha LOW / d)^(1/alpha) (d contacts per
@@ -34,7 +35,16 @@ def check_tolerances(ftol, energy_window, alpha, d, names=("--ftol", "--energy-w
     (alpha-1) delta^(alpha-2) (eps, sigma units).  Its contacts are defined only if delta is far
     above the round-off of 1 - r/sigma, and its force balance only if --ftol is small against
     its contact forces yet above the forces' round-off (~1e-16 x stiffness).  ``names`` are
-    the option (or scene key) names the messages use."""
+    the option (or scene key) names the messages use.  Without the ``bisection`` (a quench at
+    a fixed phi) no state of the window is made: only the round-off floor of --ftol applies,
+    at the overlaps of the random start."""
+    if not bisection:
+        floor = 1e-16 * (alpha - 1.0) * 0.05 ** (alpha - 2.0) if alpha >= 2 else 0.0
+        if ftol < floor:
+            raise ParjamError(f"{names[0]} {ftol:g} is below the round-off level of the forces "
+                              f"(~{floor:.1e} = 1e-16 x the largest contact stiffness): no "
+                              f"minimisation reaches it")
+        return
     lo, hi = energy_window
     delta = (alpha * lo / d) ** (1.0 / alpha)
     delta_hi = (alpha * hi / d) ** (1.0 / alpha)

@@ -19,7 +19,7 @@ from typing import Callable
 import h5py
 import numpy as np
 
-from parjam.files import outputs
+from parjam.files import inputs, outputs
 from parjam.errors import ParjamError
 from parjam.plot import DPI, LEGEND_FONTSIZE, atomic_png, pyplot
 from parjam.study.fits import bootstrap, fit_eq33, fit_power, law, log_slope
@@ -37,8 +37,7 @@ def read(path):
     """One summary file (parjam.study.summary.write_summary) as nested dicts; ParjamError if it
     is not one."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise ParjamError(f"{path}: no such file")
+    inputs.require(path)  # a FIFO named summary-*.h5 in a results directory: named, not opened
     if not h5py.is_hdf5(path):
         raise ParjamError(f"{path}: not an HDF5 file")
     try:

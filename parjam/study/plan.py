@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from parjam import resources
 from parjam.vib import kpm_dos, solver_choice
 from parjam.errors import ParjamError
+from parjam.files import inputs
 from parjam.study.scene import System
 
 # --------------------------------------------------------------------------- the plan
@@ -258,6 +259,11 @@ def describe(scene, stages):
              f"seed {scene.seed}; states {', '.join(scene.protocol.labels())}"
              + (f" ({scene.protocol.ladder})" if scene.protocol.dphi else ""),
              f"observables: {', '.join(scene.observables)}"]
+    renamed = [(what, title, name) for what, title, name in
+               [("scene", scene.title, scene.name)]
+               + [("system", s.title, s.name) for s in scene.systems] if title]
+    for what, title, name in renamed:  # names from user text are one path component
+        lines.append(f"{what} {inputs.shown(repr(title))} names its files {name!r}")
     total = 0.0
     for st in stages:
         s = st.system

@@ -16,7 +16,7 @@ import sys
 import time
 
 from parjam import env
-from parjam.files import h5md, outputs, rowio, stagefile
+from parjam.files import h5md, inputs, manifest, outputs, rowio, stagefile
 from parjam.study import members
 from parjam.errors import ParjamError, UnjammedError
 from parjam.net.fluctuations import contact_fluctuations
@@ -25,6 +25,23 @@ from parjam.study.records import moduli_record, network_record, softmodes_record
 from parjam.study.summary import summary_table, write_summary
 
 EXIT_INTERRUPTED = 5
+
+
+# --------------------------------------------------------------------------- member files
+
+def owned(rel):
+    """What a run writes at a path relative to its output directory ("file", "dir" or None:
+    not the run's); parjam.files.outputs.tree_problems checks them before a run."""
+    parts = rel.split(os.sep)
+    if len(parts) == 1:
+        if parts[0] in ("stages", "figures"):
+            return "dir"
+        return "file" if parts[0] == "stage.log" or parts[0].startswith("summary-") else None
+    if parts[0] == "figures":
+        return "file" if len(parts) == 2 else None
+    if parts[0] == "stages":  # a stage's directory: its member files, a pack stage's manifest
+        return "dir" if len(parts) == 2 else (manifest.owned(os.path.join(*parts[2:])) or "file")
+    return None
 
 
 # --------------------------------------------------------------------------- the runner
@@ -45,8 +62,8 @@ class Runner:
         self.counts = collections.Counter()
 
     # paths -------------------------------------------------------------------
-    def stage_dir(self, st):
-        return os.path.join(self.out, "stages", st.name)
+    def stage_dir(self, st):  # names are one path component (parjam.study.scene): inside out
+        return inputs.inside(self.out, "stages", st.name)
 
     def part_path(self, st, m):
         return os.path.join(self.stage_dir(st), f"member{m:04d}.h5")
@@ -55,7 +72,7 @@ class Runner:
         return os.path.join(self.pack_dirs[system.name], f"member{m:04d}_{label}.h5")
 
     def summary_path(self, st):
-        return os.path.join(self.out, f"summary-{st.system.name}-{st.key}.h5")
+        return inputs.inside(self.out, f"summary-{st.system.name}-{st.key}.h5")
 
     def failed_path(self, system, m):
         return os.path.join(self.pack_dirs[system.name], f"member{m:04d}.failed")

@@ -9,12 +9,13 @@ parjam.study.plan derives the stages from it.
 The format is documented in README.md ("Scenes") and by the bundled scenes in ``scenes/``.
 """
 
-import math
 import os
 import tomllib
 from dataclasses import dataclass, field
 
 from parjam import softmodes
+from parjam.files import inputs
+from parjam.study.tables import Table, show
 from parjam.vib import solver_choice
 from parjam.errors import ParjamError
 from parjam.pack.packing import DISPERSITIES
@@ -33,7 +34,8 @@ class System:
     dispersity: str
     ratio: float
     alpha: float
-    name: str
+    name: str  # one path component (parjam.files.inputs.component): it names stages and files
+    title: str = None  # the name as the scene gives it, when the file names had to change it
 
     @property
     def max_dof(self):
@@ -92,6 +94,7 @@ class Scene:
     seed: int
     observables: dict  # name -> dict of validated options
     solver: dict = field(default_factory=dict)
+    title: str = None  # the name as the scene gives it, when the directory name had to change it
 
     def packing_protocol(self, system, out):
         """The packing protocol (parjam.pack.protocol) of one system's pack stage, written to
@@ -104,104 +107,6 @@ class Scene:
             phi_start=p.phi_start, ftol=p.ftol, energy_window=p.energy_window)
 
 
-# --------------------------------------------------------------------------- validation helpers
-
-class _Table:
-    """One TOML table: typed getters that name the key in every error, and a final check that
-    no unknown key is left."""
-
-    def __init__(self, data, where, path):
-        if not isinstance(data, dict):
-            raise ParjamError(f"{path}: [{where}] must be a table, got {type(data).__name__}")
-        self.data, self.where, self.path = dict(data), where, path
-        self.used = set()
-
-    def fail(self, key, why):
-        raise ParjamError(f"{self.path}: [{self.where}] {key}: {why}")
-
-    def has(self, key):
-        return key in self.data
-
-    def raw(self, key, default=None):
-        self.used.add(key)
-        return self.data.get(key, default)
-
-    def int(self, key, default=None, lo=None, hi=None):
-        v = self.raw(key, default)
-        if v is None:
-            return None
-        if isinstance(v, bool) or not isinstance(v, int):
-            self.fail(key, f"must be an integer, got {v!r}")
-        if lo is not None and v < lo or hi is not None and v > hi:
-            self.fail(key, f"must lie in [{lo}, {hi if hi is not None else 'inf'}], got {v}")
-        return v
-
-    def float(self, key, default=None, lo=None, hi=None, lo_open=False):
-        v = self.raw(key, default)
-        if v is None:
-            return None
-        return self.number(key, v, lo, hi, lo_open)
-
-    def number(self, key, v, lo=None, hi=None, lo_open=False):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            self.fail(key, f"must be a finite number, got {v!r}")
-        v = float(v)
-        if lo is not None and (v < lo or (lo_open and v == lo)):
-            self.fail(key, f"must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
-        if hi is not None and v > hi:
-            self.fail(key, f"must be <= {hi:g}, got {v:g}")
-        return v
-
-    def bool(self, key, default=False):
-        v = self.raw(key, default)
-        if not isinstance(v, bool):
-            self.fail(key, f"must be true or false, got {v!r}")
-        return v
-
-    def str(self, key, default=None, choices=None):
-        v = self.raw(key, default)
-        if v is None:
-            return None
-        if not isinstance(v, str):
-            self.fail(key, f"must be a string, got {v!r}")
-        if choices and v not in choices:
-            self.fail(key, f"must be one of {', '.join(choices)}, got {v!r}")
-        return v
-
-    def list(self, key, default=None, kind=None):
-        v = self.raw(key, default)
-        if v is None:
-            return None
-        if not isinstance(v, list):
-            v = [v]
-        if not v:
-            self.fail(key, "must not be empty")
-        return v
-
-    def numbers(self, key, default=None, lo=None, hi=None, lo_open=False):
-        v = self.list(key, default)
-        return None if v is None else [self.number(key, x, lo, hi, lo_open) for x in v]
-
-    def strings(self, key, default=None, choices=None):
-        v = self.list(key, default)
-        if v is None:
-            return None
-        for x in v:
-            if not isinstance(x, str):
-                self.fail(key, f"must be a list of strings, got {x!r}")
-            if choices and x not in choices:
-                self.fail(key, f"must be among {', '.join(choices)}, got {x!r}")
-        if len(set(v)) != len(v):
-            self.fail(key, "lists a value twice")
-        return v
-
-    def done(self):
-        extra = sorted(set(self.data) - self.used)
-        if extra:
-            raise ParjamError(f"{self.path}: [{self.where}] unknown key {extra[0]!r}"
-                              + (f" (and {len(extra) - 1} more)" if len(extra) > 1 else ""))
-
-
 # --------------------------------------------------------------------------- parsing
 
 TOP_KEYS = ("scene", "system", "protocol", "ensemble", "observables", "solver")
@@ -209,33 +114,66 @@ OBSERVABLES = ("contacts", "dos", "lowest", "omega_star", "trans", "softmodes", 
                "fluctuations", "pictures")
 
 
+MAX_SCENE_BYTES = 1 << 20  # a scene is a page of text; a larger file is not one
+MAX_DEPTH = 8  # tables and arrays of a scene nest 3 deep ([observables.dos] matrices = [...])
+
+
 def load(path):
-    """Parse and validate the scene file at ``path``."""
+    """Parse and validate the scene file at ``path`` (read through the input policy: a FIFO, a
+    directory or a device is refused before it is opened)."""
     path = os.fspath(path)
+    if inputs.kind(path) == "missing":
+        raise ParjamError(f"{inputs.shown(path)}: no such scene file")
     try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ParjamError(f"{path}: no such scene file") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ParjamError(f"{path}: not valid TOML ({exc})") from None
-    except OSError as exc:  # a directory, no permission, ...
-        raise ParjamError(f"{path}: cannot read the scene file ({exc.strerror})") from None
-    return parse(data, path)
+        data = inputs.read_bytes(path, limit=MAX_SCENE_BYTES)
+    except OSError as exc:  # no permission, an I/O error, ...
+        raise ParjamError(f"{inputs.shown(path)}: cannot read the scene file "
+                          f"({exc.strerror})") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ParjamError(f"{inputs.shown(path)}: not valid TOML ({exc})") from None
+    return loads(text, path)
 
 
 def loads(text, path="<scene>"):
+    shown = inputs.shown(path)
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ParjamError(f"{path}: not valid TOML ({exc})") from None
-    return parse(data, path)
+        raise ParjamError(f"{shown}: not valid TOML ({exc})") from None
+    except RecursionError:  # tomllib recurses once per nested array or inline table
+        raise ParjamError(f"{shown}: arrays or tables nested too deeply (a scene nests "
+                          f"{MAX_DEPTH} deep at most)") from None
+    deep = _depth(data)
+    if deep > MAX_DEPTH:
+        raise ParjamError(f"{shown}: arrays or tables nested {deep} deep (a scene nests "
+                          f"{MAX_DEPTH} deep at most)")
+    return parse(data, shown)
+
+
+def _depth(value):
+    """How deeply lists and tables nest in ``value`` (iteratively: no recursion limit)."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        item, level = stack.pop()
+        if isinstance(item, dict):
+            children = item.values()
+        elif isinstance(item, list):
+            children = item
+        else:
+            continue
+        deepest = max(deepest, level + 1)
+        if level + 1 <= MAX_DEPTH:  # deeper: already refused, no need to walk further
+            stack.extend((child, level + 1) for child in children)
+    return deepest
 
 
 def parse(data, path="<scene>"):
-    top = _Table(data, "top level", path)
-    meta = _Table(top.raw("scene", {}), "scene", path)
-    name = meta.str("name", os.path.splitext(os.path.basename(path))[0] or "scene")
+    top = Table(data, "top level", path)
+    meta = Table(top.raw("scene", {}), "scene", path)
+    title = meta.str("name", os.path.splitext(os.path.basename(path))[0] or "scene")
+    name = _component(title, path, "[scene] name")
     meta.str("description", "")
     meta.done()
     systems = _systems(top.raw("system"), path)
@@ -246,14 +184,24 @@ def parse(data, path="<scene>"):
                              names=("protocol.ftol", "protocol.energy_window"))
         except ParjamError as exc:
             raise ParjamError(f"{path}: {exc}") from None
-    ens = _Table(top.raw("ensemble", {}), "ensemble", path)
+    ens = Table(top.raw("ensemble", {}), "ensemble", path)
     members = ens.int("members", 1, lo=1, hi=100_000)
     seed = ens.int("seed", 0, lo=0)
     ens.done()
     solver = _solver(top.raw("solver", {}), path)
     obs = _observables(top.raw("observables"), path, systems, protocol)
     top.done()
-    return Scene(name, path, systems, protocol, members, seed, obs, solver)
+    return Scene(name, path, systems, protocol, members, seed, obs, solver,
+                 title if title != name else None)
+
+
+def _component(text, path, what):
+    """A name from the scene as one path component (parjam.files.inputs.component): ``../X``,
+    ``/abs`` or ``a/b`` stay inside the results directory."""
+    try:
+        return inputs.component(text, what)
+    except ParjamError as exc:
+        raise ParjamError(f"{path}: {exc}") from None
 
 
 def _systems(raw, path):
@@ -262,7 +210,7 @@ def _systems(raw, path):
     tables = raw if isinstance(raw, list) else [raw]
     out = []
     for k, data in enumerate(tables):
-        t = _Table(data, f"system {k + 1}", path)
+        t = Table(data, f"system {k + 1}", path)
         d = t.int("d", None, lo=2, hi=3)
         if d is None:
             t.fail("d", "missing (2 or 3)")
@@ -271,7 +219,7 @@ def _systems(raw, path):
             t.fail("N", "missing (number of particles, or a list of them)")
         for n in ns:
             if isinstance(n, bool) or not isinstance(n, int) or not 16 <= n <= 50_000_000:
-                t.fail("N", f"must be integers in [16, 5e7], got {n!r}")
+                t.fail("N", f"must be integers in [16, 5e7], got {show(n)}")
         disp = t.str("dispersity", DEFAULT_DISPERSITY[d], DISPERSITIES)
         ratio = t.float("ratio", DEFAULT_RATIO, lo=1.0, hi=10.0)
         alpha = t.float("alpha", DEFAULT_ALPHA, lo=1.0, lo_open=True, hi=10.0)
@@ -281,18 +229,23 @@ def _systems(raw, path):
             label = name or f"d{d}-{disp}-N{n}" + ("" if alpha == 2.0 else f"-alpha{alpha:g}")
             if name and len(ns) > 1:
                 label = f"{name}-N{n}"
-            out.append(System(d, n, disp, ratio, alpha, label))
-    names = [s.name for s in out]
+            safe = _component(label, path, f"[system {k + 1}] name")
+            out.append(System(d, n, disp, ratio, alpha, safe, label if label != safe else None))
+    names = [s.title or s.name for s in out]
     if len(set(names)) != len(names):
         raise ParjamError(f"{path}: [system] two systems share the name "
-                          f"{next(x for x in names if names.count(x) > 1)!r}")
+                          f"{show(next(x for x in names if names.count(x) > 1))}")
+    try:  # two names that give one directory name (also up to case) would share their files
+        inputs.distinct({s.title or s.name: s.name for s in out}, "[system] names")
+    except ParjamError as exc:
+        raise ParjamError(f"{path}: {exc}") from None
     return out
 
 
 def _protocol(raw, path):
     if raw is None:
         raise ParjamError(f"{path}: no [protocol] table: give dphi = [...] or pressure = [...]")
-    t = _Table(raw, "protocol", path)
+    t = Table(raw, "protocol", path)
     dphi = t.numbers("dphi", None, lo=0.0, hi=1.0, lo_open=True)
     pressure = t.numbers("pressure", None, lo=0.0, hi=10.0, lo_open=True)
     if (dphi is None) == (pressure is None):
@@ -316,7 +269,7 @@ def _protocol(raw, path):
 
 
 def _solver(raw, path):
-    t = _Table(raw, "solver", path)
+    t = Table(raw, "solver", path)
     out = {"tol": t.float("tol", 1e-10, lo=0.0, hi=1e-2, lo_open=True),
            "dense_max_dof": t.int("dense_max_dof", solver_choice.WHOLE_MAX_DOF, lo=1,
                                   hi=40_000),
@@ -343,7 +296,7 @@ def _states(t, protocol, default):
             out.append("phi_c")
             continue
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            t.fail("at", f"must list \"phi_c\" or protocol values, got {v!r}")
+            t.fail("at", f"must list \"phi_c\" or protocol values, got {show(v)}")
         label = protocol.label_of(float(v))
         if label not in labels:
             t.fail("at", f"{v:g} is not one of the protocol's values "
@@ -357,13 +310,13 @@ def _obs_table(raw, name, path):
         raw = {}
     if raw is False:
         return None
-    return _Table(raw, f"observables.{name}", path)
+    return Table(raw, f"observables.{name}", path)
 
 
 def _observables(raw, path, systems, protocol):
     if raw is None:
         raise ParjamError(f"{path}: no [observables] table: nothing to compute")
-    top = _Table(raw, "observables", path)
+    top = Table(raw, "observables", path)
     ladder = [lab for lab in protocol.labels() if lab != "phi_c"]
     lowest_state = [ladder[0]]  # closest to jamming
     min_modes = min(s.d * s.n - s.d for s in systems)

@@ -233,12 +233,25 @@ def choose_method(method, dof, window, k=None, n_modes=None, tol=None):
                                        window=window, tol=tol)
 
 
+#: where a window is cut off: every eigenvalue has |lambda| <= ||D||_inf (Gershgorin), and the
+#: dense path's deflated translations sit at 2 ||D||_inf (deflated_dense), so a window reaching
+#: past the spectrum ends between the two (else it would collect the translations as modes)
+SPECTRUM_EDGE = 1.5
+
+
 def window_interval(window, norm):
     """lambda interval of a frequency window [wa, wb] (negative omega: negative lambda), an end
-    inside the zero cluster moved just outside it (slicing cannot start on the translations)."""
+    inside the zero cluster moved just outside it (slicing cannot start on the translations),
+    an end beyond the spectrum (|lambda| > ||D||_inf) moved to SPECTRUM_EDGE ||D||_inf: no
+    overflow of omega^2, no deflated translation inside."""
     wa, wb = window
     if not (np.isfinite(wa) and np.isfinite(wb)) or wb <= wa:
         raise ParjamError(f"empty frequency window [{wa}, {wb}]: need WA < WB")
+    edge = np.sqrt(SPECTRUM_EDGE * norm)  # omega of the cut-off
+    if wa >= edge or wb <= -edge:
+        raise ParjamError(f"frequency window [{wa}, {wb}] holds no mode: every |omega| is at "
+                          f"most sqrt(||D||_inf) = {np.sqrt(norm):.4g}")
+    wa, wb = max(wa, -edge), min(wb, edge)
     la, lb = np.sign(wa) * wa * wa, np.sign(wb) * wb * wb
     tol = ZERO_TOL * norm
     if la >= -tol and lb <= tol:

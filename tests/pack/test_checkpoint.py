@@ -339,7 +339,7 @@ def test_checkpoint_of_the_format_before_is_ignored_with_a_note(world, shared_tm
 
 STOP_AT = """
 import sys
-from parjam import cli; from parjam.pack import checkpoint
+from parjam import cli; from parjam.files import checkpoint
 from parjam.errors import ParjamError
 real, k, seen = checkpoint.Checkpoint.write, int(sys.argv[1]), []
 def stopping(self):
