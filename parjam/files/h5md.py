@@ -375,27 +375,3 @@ def sha256(path):
             h.update(chunk)
     return h.hexdigest()
 
-
-def write_extxyz(path, pack, net):
-    """Extended XYZ: Lattice, then per particle type (the integer species), position, radius and
-    rattler flag.  No ``species`` column: ASE reads that one as chemical symbols; ``type`` is
-    OVITO's particle type and reaches ASE as ``atoms.arrays["type"]`` (docs/file-format.md)."""
-    d = pack.d
-    lattice = " ".join(
-        f"{pack.L if a == b else 0.0:.17g}" for a in range(3) for b in range(3))
-    if d == 2:  # a thin third dimension so that 3D viewers accept it
-        lattice = lattice.rsplit(" ", 1)[0] + f" {max(pack.diam):.17g}"
-    props = "Properties=type:I:1:pos:R:3:radius:R:1:rattler:I:1"
-    species = pack.meta.get("species")
-    species = np.zeros(pack.n, np.int64) if species is None else np.asarray(species, np.int64)
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w") as fh:
-        fh.write(f"{pack.n}\n")
-        fh.write(f'Lattice="{lattice}" {props} pbc="T T {"T" if d == 3 else "F"}" '
-                 f"phi={pack.phi:.17g} alpha={pack.alpha:.17g} epsilon={pack.eps:.17g} "
-                 f"dimension={d}\n")
-        for k in range(pack.n):
-            xyz = list(pack.pos[k]) + [0.0] * (3 - d)
-            fh.write(f"{species[k]} {xyz[0]:.17g} {xyz[1]:.17g} {xyz[2]:.17g} "
-                     f"{pack.diam[k] / 2:.17g} {int(net.rattler[k])}\n")
-    os.replace(tmp, path)
