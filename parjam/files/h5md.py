@@ -39,7 +39,11 @@ def write_h5md_header(f, provenance=None):
     creator = h5md.create_group("creator")
     creator.attrs["name"] = fixed_string("parjam")
     creator.attrs["version"] = fixed_string(__version__)
-    module = h5md.create_group("modules").create_group("parjam")
+    modules = h5md.create_group("modules")
+    units = modules.create_group("units")  # H5MD units module: every dimensionful dataset
+    units.attrs["version"] = np.array([1, 0], dtype=np.int32)  # names its unit (file-format.md)
+    units.attrs["system"] = fixed_string(UNIT_SYSTEM)
+    module = modules.create_group("parjam")
     module.attrs["version"] = fixed_string(__version__)
     for key, val in (provenance or {}).items():
         val = _attr(val)
@@ -55,7 +59,10 @@ def fixed_string(text):
 # Reduced units (H5MD units module: symbols separated by spaces, each with an optional power).
 # Lengths are in units of sigma (the smallest diameter of mono- and bidisperse packings) and
 # energies in units of epsilon (the prefactor of V(r)).
-LENGTH, ENERGY, FORCE = "sigma", "epsilon", "epsilon sigma-1"
+LENGTH, ENERGY, FORCE, TIME = "sigma", "epsilon", "epsilon sigma-1", "tau"
+STIFFNESS = "epsilon sigma-2"  # V'', Hessian eigenvalues and curvatures
+#: the units module's ``system``: reduced units, tau = sigma sqrt(m / epsilon), masses m = 1
+UNIT_SYSTEM = "reduced: sigma epsilon tau"
 
 
 def pressure_unit(d):
@@ -63,7 +70,8 @@ def pressure_unit(d):
 
 
 OBSERVABLE_UNITS = {"pressure": "pressure", "stress_tensor": "pressure",
-                    "energy_per_particle": ENERGY, "max_force": FORCE}
+                    "energy_per_particle": ENERGY, "max_force": FORCE,
+                    "curvature_shift": STIFFNESS, "lowest_curvature_found": STIFFNESS}
 
 
 def _attr(val):
@@ -130,9 +138,9 @@ def diameter_attrs():
 
 
 def _time_series(group, value, unit):
-    """An H5MD time-dependent element with one frame: step (int), time (float), value."""
+    """An H5MD time-dependent element with one frame: step (int), time (float, tau), value."""
     group.create_dataset("step", data=np.array([0], dtype=np.int64))
-    group.create_dataset("time", data=np.array([0.0]))
+    group.create_dataset("time", data=np.array([0.0])).attrs["unit"] = fixed_string(TIME)
     ds = group.create_dataset("value", data=value)
     if unit:
         ds.attrs["unit"] = fixed_string(unit)
@@ -175,7 +183,7 @@ def contact_attrs():
     """Units of the per-contact datasets of /connectivity (``contacts`` has none: its
     ``particles_group`` reference is set by :func:`link_contacts`)."""
     return {"force": {"unit": fixed_string(FORCE)},
-            "stiffness": {"unit": fixed_string("epsilon sigma-2")}}
+            "stiffness": {"unit": fixed_string(STIFFNESS)}}
 
 
 def link_contacts(f):
@@ -202,7 +210,7 @@ def _write_contacts(f, pack, net):
     fmag = np.linalg.norm(contact_forces(pack, c), axis=1) if len(c) else np.zeros(0)
     g.create_dataset("force", data=fmag).attrs["unit"] = fixed_string(FORCE)
     g.create_dataset("stiffness", data=potential.d2V(c.r, c.sigma, pack.alpha, pack.eps)
-                     ).attrs["unit"] = fixed_string("epsilon sigma-2")
+                     ).attrs["unit"] = fixed_string(STIFFNESS)
     link_contacts(f)  # H5MD connectivity module: an object reference to the particles group
 
 

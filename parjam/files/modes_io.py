@@ -109,17 +109,22 @@ def write_modes(f, spec, attrs, dos, prov, d, L):
     g.create_dataset("eps_perp", data=spec.eps_perp)
     g.create_dataset("eps_par", data=spec.eps_par)
     rej = g.create_group("rejected")
-    rej.create_dataset("eigenvalue", data=spec.rejected_eigenvalue)
+    rej.create_dataset("eigenvalue", data=spec.rejected_eigenvalue).attrs["unit"] = \
+        h5md.fixed_string("tau-2")
     rej.create_dataset("error", data=spec.rejected_error)
     write_dos(f, dos)
 
 
+#: /dos datasets and their units: omega in 1/tau, D(omega) per unit omega in tau
+DOS_UNITS = {"omega": "tau-1", "edges": "tau-1", "density": "tau", "density_error": "tau"}
+
+
 def write_dos(f, dos):
     g = f.create_group("dos")
-    for key in ("omega", "edges", "density"):
-        g.create_dataset(key, data=dos[key])
-    if "density_error" in dos:
-        g.create_dataset("density_error", data=dos["density_error"])
+    for key in ("omega", "edges", "density", "density_error"):
+        if key in dos:
+            g.create_dataset(key, data=dos[key]).attrs["unit"] = h5md.fixed_string(
+                DOS_UNITS[key])
     for key, val in dos.items():
         if key not in ("omega", "edges", "density", "density_error"):
             g.attrs[key] = val
