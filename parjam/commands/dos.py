@@ -4,6 +4,7 @@ import sys
 
 import numpy as np
 
+from parjam import units
 from parjam.commands import parse_pair
 from parjam.errors import ParjamError
 from parjam.vib.spectrum import MATRICES
@@ -173,8 +174,9 @@ def run(args):
            "omega_star_each": res["omega_star_each"]}
     prov = h5md.provenance(PETSc.COMM_WORLD.getSize(), {"command": "dos", "files": args.spectra})
     outputs.on_root(PETSc.COMM_WORLD, lambda: write(args, dos, prov, (
-        f"{res['matrix']}: {len(specs)} spectra, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g}, "
-        f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g}")))
+        f"{res['matrix']}: {len(specs)} spectra, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g} "
+        f"{units.text('dos')}, omega* = {ws[0]:.4g} +- {ws_err[0]:.2g} "
+        f"{units.text('frequency')}")))
     return 0
 
 
@@ -262,6 +264,7 @@ def run_kpm(args, plateau):
     prov = h5md.provenance(comm.getSize(), {"command": "dos", "files": args.spectra})
     outputs.on_root(comm, lambda: write(args, dos, prov, (
         f"{args.matrix}: KPM ({args.moments} moments x {args.probes} probes) of "
-        f"{len(results)} packings, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g}, "
-        f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g}, {sum(r.seconds for r in results):.2f} s")))
+        f"{len(results)} packings, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g} {units.text('dos')}, "
+        f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g} {units.text('frequency')}, "
+        f"{sum(r.seconds for r in results):.2f} s")))
     return 0

@@ -5,7 +5,7 @@ import sys
 
 import numpy as np
 
-from parjam import env
+from parjam import env, units
 from parjam.files import h5md, modes_io, outputs, rowio
 from parjam.vib import spectrum
 from parjam.commands import parse_pair
@@ -82,8 +82,9 @@ def validate(args):
 
 def summary_line(kind, spec, dos):
     w = spec.frequency
-    rng = f"omega {w[0]:.4g} .. {w[-1]:.4g}" if len(w) else "no modes"
-    extra = (f", D0 = {dos['D0']:.4g}, omega* = {dos['omega_star']:.4g}" if dos else "")
+    rng = f"omega {w[0]:.4g} .. {w[-1]:.4g} {units.text('frequency')}" if len(w) else "no modes"
+    extra = (f", D0 = {dos['D0']:.4g} {units.text('dos')}, omega* = {dos['omega_star']:.4g} "
+             f"{units.text('frequency')}" if dos else "")
     return (f"{kind}: {len(w)} modes by {spec.method} ({rng}), max residual "
             f"{spec.error.max() if len(w) else 0:.1e}, {spec.seconds:.2f} s{extra}")
 

@@ -279,7 +279,7 @@ def _run(args):
         manifest.write_manifest(args.out, params, finished)
         for m, files in sorted(done.items()):
             all_rows.append(rows_from_files(args.out, m, files))
-        print_table([r for part in all_rows for r in part])
+        print_table([r for part in all_rows for r in part], args.dim)
         incomplete = [line for part in incomplete for line in part]
         for line in incomplete:
             print(f"parjam: error: {line}", file=sys.stderr, flush=True)

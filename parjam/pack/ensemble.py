@@ -342,15 +342,21 @@ def _world_size():
     return MPI.COMM_WORLD.Get_size()
 
 
-def print_table(rows):
+def print_table(rows, d="d"):
+    """The states of every member, one row each, with a row of units under the header
+    (parjam.units: reduced units, d the dimension)."""
+    from parjam import units
+
     rows = sorted(rows, key=lambda r: (r["member"], r["phi"]))
     head = (f"{'member':>6} {'state':>12} {'phi_c':>14} {'phi':>14} {'N_act':>6} {'Nc-iso':>6} "
-            f"{'z':>8} {'dz':>10} {'p':>11} {'max|F|':>9} {'|F|rel':>9}")
+            f"{'z':>8} {'dz':>10} {'p':>15} {'max|F|':>11} {'|F|rel':>9}")
     print(head)
+    print(f"{'':>6} {'':>12} {'':>14} {'':>14} {'':>6} {'':>6} {'':>8} {'':>10} "
+          f"{units.text('pressure', d):>15} {units.text('force'):>11} {'':>9}")
     for r in rows:
         print(f"{r['member']:>6} {r['state']:>12} {r['phi_c']:>14.10f} {r['phi']:>14.10f} "
               f"{r['N_active']:>6} {r['excess']:>6} {r['z']:>8.4f} {r['dz']:>10.3e} "
-              f"{r['pressure']:>11.4e} {r['max_force']:>9.2e} {r['max_force_rel']:>9.2e}")
+              f"{r['pressure']:>15.4e} {r['max_force']:>11.2e} {r['max_force_rel']:>9.2e}")
     print(stability_line(rows))
     line = label_line(rows)
     if line:
