@@ -8,6 +8,7 @@ import sys
 import numpy as np
 
 from parjam.errors import ParjamError, UnjammedError
+from parjam.progress import member
 from parjam.pack.packing import DISPERSITIES
 from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DPHI, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
                              DEFAULT_PHI_START, DEFAULT_RATIO, LADDERS, PHIC_METHODS,
@@ -176,7 +177,8 @@ def prepare_output(args, params):
     notes = [f"removed stale temporary file {name}"
              for name in manifest.remove_stale_temporaries(args.out)]
     done, damaged = manifest.finished_members(args.out, params)
-    notes += [f"member {m}: files missing or changed since they were written: recomputing"
+    notes += [f"{member(m)} (member{m:04d}_*): files missing or changed since they were "
+              f"written: recomputing"
               for m in damaged]
     if not args.resume:
         done = {}
@@ -262,7 +264,7 @@ def _run(args):
     for m in mine:
         try:
             rows += pack_member(protocol, m, comm,
-                                progress.group(comm, f"member {m} of {args.members}: "), params)
+                                progress.group(comm, f"{member(m, args.members)}: "), params)
         except MemberIncomplete as exc:  # its jammed states are written; the others go on
             rows += exc.rows
             if comm.getRank() == 0:

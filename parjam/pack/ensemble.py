@@ -8,6 +8,7 @@ import h5py
 import numpy as np
 
 from parjam import faults
+from parjam.progress import member as member_name
 from parjam.files import h5md, manifest, outputs
 from parjam.net import order
 from parjam.pack import checkpoint, filestart, statefile
@@ -58,7 +59,7 @@ def member_states(args, member, comm, progress, checkpoint=None):
                 stopped = exc
                 for st in states:
                     st.info["ladder_unjammed_at"] = exc.step
-            resolution_flags(states, resolution, f"member {member} ")
+            resolution_flags(states, resolution, f"{member_name(member)} ")
             virial_flags(states)
         totals = {"fire_steps": jammer.total_fire, "newton_steps": jammer.total_newton,
                   "force_evaluations": jammer.ff.n_force_calls}
@@ -285,9 +286,10 @@ def pack_member(args, member, comm, progress, run_params=None):
         }
         path = file_name(args.out, member, st)
         prov = h5md.provenance(comm.tompi4py().Get_size(), {"world_ranks": _world_size()})
-        extra = quality_checks(st.rows, net, f"member {member} {st.label}",
+        extra = quality_checks(st.rows, net, f"{member_name(member)} {st.label}",
                                st.phi - st.info.get("phi_c", np.nan), hexatic, speak=root)
-        extra.update(stability_observables(st, f"member {member} {st.label}", speak=root))
+        extra.update(stability_observables(st, f"{member_name(member)} {st.label}",
+                                           speak=root))
         # by row blocks (parjam.files.rowio, collective): no rank holds all N; a failed write (a full
         # disk) ends every rank of the group with the same line, not an MPI abort
         statefile.write(path, st.rows, net, params, prov, extra)
@@ -300,7 +302,7 @@ def pack_member(args, member, comm, progress, run_params=None):
     if stopped is not None:
         # the jammed states are written, but the member is not finished: no manifest record
         # (a rerun recomputes it, from its checkpoint if any) and an UnjammedError (exit 3)
-        raise MemberIncomplete(f"member {member}: {stopped}; its {len(states)} jammed "
+        raise MemberIncomplete(f"{member_name(member)}: {stopped}; its {len(states)} jammed "
                                f"state(s) before that step are written "
                                f"(ladder_unjammed_at = {stopped.step:.1e} in /observables)",
                                rows)
@@ -343,7 +345,8 @@ def _world_size():
 
 
 def print_table(rows, d="d"):
-    """The states of every member, one row each, with a row of units under the header
+    """The states of every member, one row each (members counted from 1, as every message
+    counts them: member 1's files are member0000_*), with a row of units under the header
     (parjam.units: reduced units, d the dimension)."""
     from parjam import units
 
@@ -354,7 +357,7 @@ def print_table(rows, d="d"):
     print(f"{'':>6} {'':>12} {'':>14} {'':>14} {'':>6} {'':>6} {'':>8} {'':>10} "
           f"{units.text('pressure', d):>15} {units.text('force'):>11} {'':>9}")
     for r in rows:
-        print(f"{r['member']:>6} {r['state']:>12} {r['phi_c']:>14.10f} {r['phi']:>14.10f} "
+        print(f"{r['member'] + 1:>6} {r['state']:>12} {r['phi_c']:>14.10f} {r['phi']:>14.10f} "
               f"{r['N_active']:>6} {r['excess']:>6} {r['z']:>8.4f} {r['dz']:>10.3e} "
               f"{r['pressure']:>15.4e} {r['max_force']:>11.2e} {r['max_force_rel']:>9.2e}")
     print(stability_line(rows))
@@ -370,7 +373,7 @@ def stability_line(rows):
     if not bad:
         return f"stability: all {len(rows)} states are stable minima (Nc >= Nc_iso)"
     return (f"stability: {len(bad)} of {len(rows)} states in {len(members)} member(s) are NOT "
-            f"stable minima (flagged stable = 0): " + ", ".join(f"{m} {s}" for m, s in bad))
+            f"stable minima (flagged stable = 0): " + ", ".join(f"{m + 1} {s}" for m, s in bad))
 
 
 def label_line(rows):
@@ -381,4 +384,4 @@ def label_line(rows):
         return None
     return (f"labels: {len(bad)} state(s) re-jammed at another phi_c on the way (their own "
             f"virial dphi is off their label; dphi_virial_ok = 0): "
-            + ", ".join(f"{m} {s}" for m, s in bad))
+            + ", ".join(f"{m + 1} {s}" for m, s in bad))
