@@ -51,7 +51,27 @@ def mode_attrs(spec, system, packing_path, ranks):
         "packing_file": os.path.abspath(packing_path) if packing_path else "",
         "packing_sha256": h5md.sha256(packing_path) if packing_path else "",
         "solver_info": json.dumps(spec.info, default=float),
+        **packing_state(packing_path),
     }
+
+
+def packing_state(path):
+    """What figures name a spectrum by: the packing's state label (``dphi1.0e-04``, ``phi_c``,
+    ``p1.0e-03``, ``imported``), N and phi, from its /parameters (empty if unreadable)."""
+    if not path:
+        return {}
+    try:
+        with h5py.File(path, "r") as f:
+            par = f["parameters"].attrs if "parameters" in f else {}
+            state = par.get("state", "")
+            out = {"state": state.decode() if isinstance(state, bytes) else str(state)}
+            if "phi" in par:
+                out["phi"] = float(np.asarray(par["phi"]).reshape(-1)[0])
+            if "particles/all/diameter" in f:
+                out["n"] = int(f["particles/all/diameter"].shape[0])
+            return out
+    except (OSError, KeyError, ValueError, TypeError):
+        return {}
 
 
 def write_spectrum(comm, path, spec, system, rows, dos, prov):
