@@ -120,6 +120,8 @@ def ensemble_state(specs):
     packings' labels, e.g. dphi1.0e-04; several joined by commas)."""
     a = specs[0]["attrs"]
     states = sorted({str(s["attrs"].get("state", "")) for s in specs} - {""})
+    if not states:  # packings without a state label: their mean pressure names them
+        states = [f"p{np.mean([float(s['attrs'].get('pressure', np.nan)) for s in specs]):.1e}"]
     return {"n": int(a.get("n_active", 0)) + int(a.get("n_rattlers", 0)),
             "dimension": int(a.get("dimension", 0)), "state": ",".join(states)}
 

@@ -30,6 +30,8 @@ def spectra_title(spectra):
     a = spectra[0].get("attrs", {})
     n = a.get("n") or (int(a.get("n_active", 0)) + int(a.get("n_rattlers", 0)))
     states = sorted({str(s.get("attrs", {}).get("state", "")) for s in spectra} - {""})
+    if not states and a.get("pressure") is not None:  # a packing without a state label
+        states = [f"p{float(a['pressure']):.1e}"]
     return title(n, a.get("dimension"), ",".join(states))
 
 
