@@ -142,6 +142,18 @@ def span(labs):
     return f"{name} = {vals[0]:.0e}" + (f" .. {vals[-1]:.0e}" if len(vals) > 1 else "")
 
 
+def everyone(systems):
+    """The second title line of a figure drawing several systems: each one's N, d, members."""
+    return "; ".join(who(s) for s in systems.values())
+
+
+def single(ax, heading, systems):
+    """Title (the law and its states, then the systems) and legend of a one-panel figure whose
+    points lie along a rising diagonal: the legend goes to the upper left."""
+    ax.set_title(f"{heading}\n{everyone(systems)}", fontsize=9)
+    ax.legend(fontsize=LEGEND_FONTSIZE - 1, loc="upper left")
+
+
 def common_d(systems):
     """The dimension of every system drawn, or "d" when they mix."""
     dims = {int(s["attrs"]["d"]) for s in systems.values()}
@@ -299,11 +311,10 @@ def sans(plt, systems, fits):
         ax.loglog(dz.ravel(), ws.ravel(), "o", ms=3, color=f"C{k}", alpha=0.5)
         x = np.geomspace(np.nanmin(dz[dz > 0]), np.nanmax(dz), 20)
         ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
-                  label=f"{name} ({who(s)}): slope {law(f)}")
+                  label=f"{name}: slope {law(f)}")
     labs = sorted({lab for s in systems.values() for lab in _sans_states(s)}, key=value)
-    ax.set(xlabel=r"dz_iso $= z - z_{iso}$", ylabel=axis(r"$\omega^*$ (relaxed)", "frequency"),
-           title=r"$\omega^* \sim$ dz_iso, " + span(labs))
-    ax.legend(fontsize=LEGEND_FONTSIZE)
+    ax.set(xlabel=r"dz_iso $= z - z_{iso}$", ylabel=axis(r"$\omega^*$ (relaxed)", "frequency"))
+    single(ax, r"$\omega^* \sim$ dz_iso, " + span(labs), systems)
     return fig
 
 
@@ -423,14 +434,13 @@ def eq33(plt, systems, fits):
         f, w2, dz, p = eq33_fit(name, s, fits)
         pred = f["A1"] * dz**2 - f["A2"] * p
         ax.loglog(pred.ravel(), w2.ravel(), "o", ms=3, color=f"C{k}",
-                  label=f"{name} ({who(s)}): A1 = {f['A1']:.3g}, A2 = {f['A2']:.3g}")
+                  label=f"{name}: A1 = {f['A1']:.3g}, A2 = {f['A2']:.3g}")
     lim = ax.get_xlim()
     ax.loglog(lim, lim, "k--", lw=0.8)
     labs = sorted({lab for s in systems.values() for lab in _eq33_states(s)}, key=value)
     ax.set(xlabel=axis(r"$A_1$ dz_iso$^2 - A_2 p$", "eigenvalue"),
-           ylabel=axis(r"$\omega_{AM}^2$", "eigenvalue"),
-           title="Eq. (33), full system, " + span(labs))
-    ax.legend(fontsize=LEGEND_FONTSIZE)
+           ylabel=axis(r"$\omega_{AM}^2$", "eigenvalue"))
+    single(ax, "Eq. (33), full system, " + span(labs), systems)
     return fig
 
 
@@ -451,7 +461,7 @@ def diag(plt, systems, fits):
         ax.loglog(p.ravel(), dz.ravel(), "o", ms=3, color=f"C{k}", alpha=0.5)
         x = np.geomspace(p.min(), p.max(), 20)
         ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
-                  label=f"{name} ({who(s)}): slope {law(f)}, C0 = {f['prefactor']:.2f}")
+                  label=f"{name}: slope {law(f)}, C0 = {f['prefactor']:.2f}")
         e33 = fits.get(f"eq33/{name}")
         if e33 is None and _eq33_ok(s):
             e33 = eq33_fit(name, s, fits)[0]
@@ -459,12 +469,11 @@ def diag(plt, systems, fits):
             line = np.sqrt(e33["A2"] / e33["A1"] * x)
             ax.fill_between(x, 1e-6, line, color=f"C{k}", alpha=0.12)
             ax.loglog(x, line, ":", color=f"C{k}", lw=1,
-                      label=rf"{name}: unstable below $\sqrt{{A_2 p/A_1}}$")
+                      label=rf"unstable below $\sqrt{{A_2 p/A_1}}$")
     labs = sorted({lab for s in systems.values() for lab in _diag_states(s)}, key=value)
-    ax.set(xlabel=axis("$p$", "pressure", common_d(systems)), ylabel=r"dz_iso $= z - z_{iso}$",
-           title=r"dz_iso $= C_0\, p^{1/2}$ (Eq. 22), " + span(labs))
+    ax.set(xlabel=axis("$p$", "pressure", common_d(systems)), ylabel=r"dz_iso $= z - z_{iso}$")
     ax.set_ylim(bottom=max(ax.get_ylim()[0], 1e-3))
-    ax.legend(fontsize=LEGEND_FONTSIZE)
+    single(ax, r"dz_iso $= C_0\, p^{1/2}$ (Eq. 22), " + span(labs), systems)
     return fig
 
 
@@ -489,14 +498,15 @@ def fluct(plt, systems, fits):
     fig, axes = _panels(plt, systems)
     for ax, (name, s) in zip(axes, systems.items()):
         d = int(s["attrs"]["d"])
-        sizes = set()
+        by_m = {}  # sub-box index m - 2 -> its side in every state (L differs a little)
         labs = _fluct_states(s)
         for k, lab in enumerate(labs):
             g = s[lab]["fluctuations"]
             l = np.nanmean(np.atleast_2d(g["l"])[:, 1:], axis=0)
             std_c = np.sqrt(np.nanmean(np.atleast_2d(g["var_contacts"])[:, 1:], axis=0))
             std_x = np.sqrt(np.nanmean(np.atleast_2d(g["var_excess"])[:, 1:], axis=0))
-            sizes.update(np.round(l, 6).tolist())
+            for j, side in enumerate(l):
+                by_m.setdefault(j, []).append(side)
             ax.loglog(l, std_c, "o-", color=f"C{k}", ms=4, label=state_text(lab))
             ax.loglog(l, std_x, "s--", color=f"C{k}", ms=4, mfc="none")
             if len(l) > 1:
@@ -504,7 +514,7 @@ def fluct(plt, systems, fits):
                     "std_contacts_exponent": float(log_slope(l, std_c)[0]),
                     "std_excess_exponent": float(log_slope(l, std_x)[0]),
                     "gaussian": d / 2, "surface": d - 1}
-        sizes = np.array(sorted(sizes))
+        sizes = np.array([np.mean(by_m[j]) for j in sorted(by_m)])
         if len(sizes) > 1:
             ref = np.array([sizes.min(), sizes.max()])
             ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d / 2), "k:", label=f"~ l^{d / 2:g}")
