@@ -517,8 +517,13 @@ def fluct(plt, systems, fits):
         sizes = np.array([np.mean(by_m[j]) for j in sorted(by_m)])
         if len(sizes) > 1:
             ref = np.array([sizes.min(), sizes.max()])
-            ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d / 2), "k:", label=f"~ l^{d / 2:g}")
-            ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d - 1), "k-.", label=f"~ l^{d - 1}")
+            if d / 2 == d - 1:  # 2D: the Gaussian and the surface law coincide
+                ax.loglog(ref, std_c[0] * (ref / ref[0]), "k:", label="~ l (Gaussian = surface)")
+            else:
+                ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d / 2), "k:",
+                          label=f"~ l^{d / 2:g} (Gaussian)")
+                ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d - 1), "k-.",
+                          label=f"~ l^{d - 1} (surface)")
         ax.set_xlim(sizes.min() / 1.25, sizes.max() * 1.25)
         ax.xaxis.set_major_locator(FixedLocator(sizes))
         ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.2f}"))
