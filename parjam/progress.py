@@ -3,7 +3,10 @@
 With several rank groups (``parjam pack`` with fewer ranks than members, or several members per
 rank), each group's rank 0 makes progress lines for its own members; a :class:`Relay` carries
 them to world rank 0, which prints them between its own lines, so that one process writes the
-whole log and every member is heard from, not only those of world rank 0."""
+whole log and every member is heard from, not only those of world rank 0.  Every line is
+stamped by world rank 0's clock when it is printed, so the times of the log never go backwards
+(a relayed line's own rank started its clock at another moment; its line arrives when rank 0
+next speaks or at the end)."""
 
 import sys
 import time
@@ -11,11 +14,18 @@ import time
 _TAG = 7101
 
 
+def member(m, total=None):
+    """How every message names member ``m`` (its 0-based index, the MMMM of its files
+    memberMMMM_*): counted from 1, "member 1 of 8"."""
+    return f"member {m + 1}" + (f" of {total}" if total is not None else "")
+
+
 class Relay:
     """Lines from other ranks to world rank 0, over a private duplicate of ``mpi_comm``
     (collective to create and to :meth:`close`)."""
 
     def __init__(self, mpi_comm):
+        self.t0 = time.monotonic()  # world rank 0's: the clock of every printed line
         self.comm = mpi_comm.Dup()
         self.rank = self.comm.Get_rank()
         self.pending = []
@@ -34,7 +44,7 @@ class Relay:
             if line is None:
                 self.open -= 1
             else:
-                print(line, file=sys.stderr, flush=True)
+                print(stamp(self.t0, line), file=sys.stderr, flush=True)
 
     def close(self):
         """Every rank: the others send their end marker, world rank 0 prints until all ended."""
@@ -49,6 +59,11 @@ class Relay:
         self.comm.Free()
 
 
+def stamp(t0, text):
+    """A progress line: seconds since ``t0`` (time.monotonic) and the text."""
+    return f"[{time.monotonic() - t0:8.1f} s] {text}"
+
+
 class Progress:
     def __init__(self, comm=None, quiet=False, prefix="", relay=None):
         rank = comm.Get_rank() if comm is not None else 0
@@ -56,18 +71,18 @@ class Progress:
         self.quiet = quiet
         self.prefix = prefix
         self.relay = relay
-        self.t0 = time.time()
+        self.t0 = relay.t0 if relay is not None else time.monotonic()
 
     def __call__(self, msg):
         if not self.enabled:
             return
-        line = f"[{time.time() - self.t0:8.1f} s] {self.prefix}{msg}"
+        text = f"{self.prefix}{msg}"
         if self.relay is not None and self.relay.rank != 0:
-            self.relay.send(line)
+            self.relay.send(text)  # stamped by world rank 0 when it prints it
             return
         if self.relay is not None:
             self.relay.drain()
-        print(line, file=sys.stderr, flush=True)
+        print(stamp(self.t0, text), file=sys.stderr, flush=True)
 
     def sub(self, prefix):
         child = Progress(quiet=not self.enabled, prefix=self.prefix + prefix, relay=self.relay)
@@ -84,10 +99,10 @@ class Progress:
     def throttled(self, interval=10.0):
         """A callable printing at most once per ``interval`` seconds (for inner loops such as
         FIRE steps, whose count per second varies by orders of magnitude with N)."""
-        last = [time.time()]
+        last = [time.monotonic()]
 
         def emit(msg):
-            now = time.time()
+            now = time.monotonic()
             if now - last[0] >= interval:
                 last[0] = now
                 self(msg)

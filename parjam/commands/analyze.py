@@ -1,5 +1,6 @@
 """``parjam analyze``: the contact-network summary of packing files."""
 
+from parjam import units
 from parjam.files import outputs
 
 
@@ -8,7 +9,8 @@ def add_parser(sub):
                        description="Contacts, rattlers (fewer than d+1 contacts, removed "
                        "iteratively), N', z, dz = z - 2d, Nc - Nc_iso with Nc_iso = d(N'-1)+1, "
                        "dz_iso = z - z_iso = 2(Nc - Nc_iso)/N', "
-                       "pressure, energy per particle, phi and the residual force.")
+                       "pressure, energy per particle, phi and the residual force, in reduced "
+                       "units (sigma, eps, tau; the text output names each unit).")
     p.add_argument("files", nargs="+", help="packing HDF5 files")
     p.add_argument("--json", action="store_true", help="one JSON object per file")
     p.add_argument("-q", "--quiet", action="store_true",
@@ -35,8 +37,15 @@ def run(args):
         for key, val in s.items():
             fmt = (UNDEFINED if val is None else f"{val:.12g}" if isinstance(val, float)
                    else f"{val}")
-            print(f"  {key:<20} {fmt}")
+            unit = f" {units.text(UNIT_OF[key], net.d)}" if key in UNIT_OF and val is not None \
+                else ""
+            print(f"  {key:<20} {fmt}{unit}")
     return 0
+
+
+#: the dimensionful entries of the summary and their quantity (parjam.units); the others are
+#: dimensionless (phi, counts, z, dz, dz_iso, max_force_rel)
+UNIT_OF = {"pressure": "pressure", "energy_per_particle": "energy", "max_force": "force"}
 
 
 UNDEFINED = "undefined (every particle is a rattler)"

@@ -4,6 +4,7 @@ import sys
 
 import numpy as np
 
+from parjam import units
 from parjam.commands import parse_pair
 from parjam.errors import ParjamError
 from parjam.vib.spectrum import MATRICES
@@ -117,6 +118,17 @@ def check_defined(paths, d0s, stars, plateau):
                               f"undefined; choose a window inside the computed frequencies")
 
 
+def ensemble_state(specs):
+    """What the figure names the ensemble by: N, d and the states of its spectra (their
+    packings' labels, e.g. dphi1.0e-04; several joined by commas)."""
+    a = specs[0]["attrs"]
+    states = sorted({str(s["attrs"].get("state", "")) for s in specs} - {""})
+    if not states:  # packings without a state label: their mean pressure names them
+        states = [f"p{np.mean([float(s['attrs'].get('pressure', np.nan)) for s in specs]):.1e}"]
+    return {"n": int(a.get("n_active", 0)) + int(a.get("n_rattlers", 0)),
+            "dimension": int(a.get("dimension", 0)), "state": ",".join(states)}
+
+
 def ensemble(specs, bins, log, omega_min, plateau):
     """Per-file D(omega) on common edges, D0 and omega*; their means and standard errors."""
     from parjam.vib import observables
@@ -173,11 +185,12 @@ def run(args):
            "matrix": res["matrix"], "n_files": len(specs), "D0": float(d0[0]),
            "D0_error": float(d0_err[0]), "omega_star": float(ws[0]),
            "omega_star_error": float(ws_err[0]), "D0_each": res["D0_each"],
-           "omega_star_each": res["omega_star_each"]}
+           "omega_star_each": res["omega_star_each"], **ensemble_state(specs)}
     prov = h5md.provenance(PETSc.COMM_WORLD.getSize(), {"command": "dos", "files": args.spectra})
     outputs.on_root(PETSc.COMM_WORLD, lambda: write(args, dos, prov, (
-        f"{res['matrix']}: {len(specs)} spectra, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g}, "
-        f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g}")))
+        f"{res['matrix']}: {len(specs)} spectra, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g} "
+        f"{units.text('dos')}, omega* = {ws[0]:.4g} +- {ws_err[0]:.2g} "
+        f"{units.text('frequency')}")))
     return 0
 
 
@@ -195,7 +208,16 @@ def write(args, dos, prov, line):
 
         with outputs.atomic_path(args.plot, ".png") as tmp:
             ensemble_dos_figure(dos["omega"], dos["density"], dos["density_error"], tmp,
-                                dos["matrix"], dos["omega_star"])
+                                dos["matrix"], dos["omega_star"], dos_heading(dos))
+
+
+def dos_heading(dos):
+    """The figure's title: N, d, the state and the number of members averaged."""
+    from parjam.plot.labels import title
+
+    what = rf"$D(\omega)$ of the {dos['matrix']} matrix"
+    what += ", KPM" if dos.get("method") == "kpm" else ""
+    return title(dos.get("n"), dos.get("dimension"), dos.get("state"), dos.get("n_files"), what)
 
 
 def kpm_ensemble(comm, paths, args, plateau, progress):
@@ -267,6 +289,7 @@ def run_kpm(args, plateau):
     prov = h5md.provenance(comm.getSize(), {"command": "dos", "files": args.spectra})
     outputs.on_root(comm, lambda: write(args, dos, prov, (
         f"{args.matrix}: KPM ({args.moments} moments x {args.probes} probes) of "
-        f"{len(results)} packings, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g}, "
-        f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g}, {sum(r.seconds for r in results):.2f} s")))
+        f"{len(results)} packings, D0 = {d0[0]:.4g} +- {d0_err[0]:.2g} {units.text('dos')}, "
+        f"omega* = {ws[0]:.4g} +- {ws_err[0]:.2g} {units.text('frequency')}, "
+        f"{sum(r.seconds for r in results):.2f} s")))
     return 0

@@ -1,5 +1,5 @@
-"""``parjam import``: a configuration made elsewhere (extended XYZ, LAMMPS data or dump, another
-program's H5MD) as a parjam packing file, which ``parjam pack --from`` minimises, brings to phi_c
+"""``parjam import``: a configuration made elsewhere (extended XYZ, LAMMPS data or dump, GSD,
+another program's H5MD) as a parjam packing file, which ``parjam pack --from`` minimises, brings to phi_c
 and compresses along a dphi ladder (parjam.files.importer)."""
 
 import os
@@ -9,20 +9,25 @@ from parjam.errors import ParjamError
 
 
 def add_parser(sub):
-    from parjam.files.importer import FORMATS
+    from parjam.files.importer import ATOM_STYLES, FORMATS
 
     p = sub.add_parser(
-        "import", help="bring in a packing made elsewhere (extended XYZ, LAMMPS, H5MD)",
+        "import", help="bring in a packing made elsewhere (extended XYZ, LAMMPS, GSD, H5MD)",
         description="Read the last frame of FILE (extended XYZ of ASE/OVITO, LAMMPS data "
-        "(atom_style atomic or sphere) or text dump, or H5MD of another program) in a periodic "
-        "cubic/square box, rescale lengths so that the smallest diameter is 1, and write a "
-        "parjam packing file with its contact network. `parjam pack --from OUT` then minimises "
-        "it, finds phi_c and runs the dphi ladder.")
+        "(atom_style atomic, charge, molecular, full or sphere) or text dump, GSD of "
+        "HOOMD-blue, or H5MD of another program) in a periodic cubic/square box, rescale "
+        "lengths so that the smallest diameter is 1, and write a parjam packing file with its "
+        "contact network. A volume fraction that `parjam pack` cannot start from (phi >= 1 in "
+        "3D, >= 1.5 in 2D, or < 0.05) is refused. `parjam pack --from OUT` then minimises it, "
+        "finds phi_c and runs the dphi ladder.")
     p.add_argument("file", help="the configuration to import")
     p.add_argument("--out", help="output packing (default: FILE's name with .parjam.h5)")
     p.add_argument("--format", choices=FORMATS,
                    help="default: from the extension (.xyz/.extxyz, .data/.lmp, "
-                   ".dump/.lammpstrj, .h5/.h5md)")
+                   ".dump/.lammpstrj, .gsd, .h5/.h5md)")
+    p.add_argument("--atom-style", choices=ATOM_STYLES,
+                   help="LAMMPS data: the Atoms section's layout when its header names none "
+                   "and the columns fit two (7 columns: sphere or full)")
     p.add_argument("--diameters", type=float, nargs="+", metavar="D",
                    help="diameters of the species (LAMMPS types) in increasing order, for files "
                    "that give none (default: 1 when there is one species)")
@@ -51,7 +56,8 @@ def run(args):
     for dval in args.diameters or []:
         if not dval > 0:
             raise ParjamError(f"--diameters must be positive, got {dval}")
-    pack = importer.load(args.file, args.format, args.diameters, args.dim, args.alpha)
+    pack = importer.load(args.file, args.format, args.diameters, args.dim, args.alpha,
+                         args.atom_style)
     net = analyze(pack)
     meta = pack.meta
     params = {"protocol": "imported", "ladder": "none", "state": "imported",

@@ -135,32 +135,45 @@ def run(args):
 
 
 def print_summary(res, out):
+    """The results, each with its reduced unit (parjam.units)."""
+    from parjam import units
+
     s = res.summary()
-    lines = [f"N' / N            {s['N_active']} / {s['N']}   (rho = N'/V = {s['rho']:.6g})",
+    d = s.get("d", "d")
+    u = {q: units.text(q, d) for q in ("modulus", "speed", "dos", "frequency", "length",
+                                       "density", "wavenumber")}
+    lines = [f"N' / N            {s['N_active']} / {s['N']}   (rho = N'/V = {s['rho']:.6g} "
+             f"{u['density']})",
              f"z, dz             {s['z']:.4f}, {s['dz']:.4f}"]
     if "B" in s:
-        lines += [f"B, G              {s['B']:.6e}, {s['G']:.6e}"
+        lines += [f"B, G              {s['B']:.6e}, {s['G']:.6e} {u['modulus']}"
                   + ("   (G_min < 0: UNSTABLE to some shear)" if s["G_min"] < 0 else ""),
-                  f"c_L, c_T          {s['c_L']:.6e}, {s['c_T']:.6e}"]
+                  f"c_L, c_T          {s['c_L']:.6e}, {s['c_T']:.6e} {u['speed']}"]
     if "omega_star" in s:
-        lines.append(f"D0, omega*        {s['D0']:.6e}, {s['omega_star']:.6e}   "
-                     f"({res.spectrum.matrix} matrix, {len(res.spectrum.eigenvalue)} modes)")
+        lines.append(f"D0, omega*        {s['D0']:.6e} {u['dos']}, {s['omega_star']:.6e} "
+                     f"{u['frequency']}   ({res.spectrum.matrix} matrix, "
+                     f"{len(res.spectrum.eigenvalue)} modes)")
     if "l_L" in s:
-        lines.append(f"l_L, l_T          {s['l_L']:.6e}, {s['l_T']:.6e}")
+        lines.append(f"l_L, l_T          {s['l_L']:.6e}, {s['l_T']:.6e} {u['length']}")
     if "lstar" in s:
+        missing = [name for key, name in (("lstar", "the count"),
+                                          ("lstar_extended", "the extended soft modes"))
+                   if not np.isfinite(s[key])]
+        note = (f"; NaN: {' and '.join(missing)} did not change within the edges tried "
+                f"(--edges)" if missing else "")
         lines.append(f"l* (cut cubes)    {s['lstar']:.4g} from the count, "
-                     f"{s['lstar_extended']:.4g} from the extended soft modes   (estimate "
-                     f"d z <|r_a|>/dz = {s['lstar_estimate']:.4g}; L = {s['L']:.4g}; NaN: "
-                     "outside the edges tried)")
+                     f"{s['lstar_extended']:.4g} from the extended soft modes {u['length']}   "
+                     f"(estimate d z <|r_a|>/dz = {s['lstar_estimate']:.4g}; L = {s['L']:.4g}"
+                     f"{note})")
         if res.lstar.failed:
             lines.append(f"                  {res.lstar.failed} cubes without a clear gap "
                          "left out of the soft-mode counts")
     if "c_T_fit" in s:
-        lines.append(f"dispersion slopes c_L, c_T = {s['c_L_fit']:.6e}, {s['c_T_fit']:.6e}   "
-                     f"(k <= {s['k_fit']:.3g})")
+        lines.append(f"dispersion slopes c_L, c_T = {s['c_L_fit']:.6e}, {s['c_T_fit']:.6e} "
+                     f"{u['speed']}   (k <= {s['k_fit']:.3g} {u['wavenumber']})")
         if "l_T_structure" in s:
             lines.append(f"l_T, l_L from F   {s['l_T_structure']:.6e}, {s['l_L_structure']:.6e}"
-                         "   (1/k where the peak reaches omega*)")
+                         f" {u['length']}   (1/k where the peak reaches omega*)")
     if out:
         lines.append(f"written           {out}")
     print("\n".join(lines), flush=True)

@@ -5,7 +5,7 @@ import sys
 
 import numpy as np
 
-from parjam import env
+from parjam import env, units
 from parjam.files import h5md, modes_io, outputs, rowio
 from parjam.net import active
 from parjam.vib import observables, spectrum
@@ -35,7 +35,9 @@ def add_parser(sub):
                    "OUT with .MATRIX before .h5, e.g. --matrix full relaxed for Fig. 'compare'")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--k", type=int, help="number of lowest non-translational modes")
-    g.add_argument("--window", help="frequency window WA,WB: every mode with WA <= omega <= WB")
+    g.add_argument("--window", help="frequency window WA,WB [tau^-1]: every mode with WA <= "
+                   "omega <= WB (method auto: dense LAPACK up to 3000 degrees of freedom, "
+                   "spectrum slicing above)")
     p.add_argument("--method", default="auto", choices=spectrum.METHODS,
                    help="auto: --window: dense LAPACK up to 3000 dof, else slice; --k: "
                    "sinvert, or dense up to 3000 dof when N is tiny (<= 400 dof), k >= 15%% of "
@@ -49,9 +51,9 @@ def add_parser(sub):
     p.add_argument("--bins", type=int, help="D(omega) bins (default: about the square root of "
                    "the number of modes computed, 3 to 40)")
     p.add_argument("--log-bins", action="store_true", help="logarithmic D(omega) bins")
-    p.add_argument("--omega-min", type=float, help="lowest edge of log bins")
-    p.add_argument("--plateau", help="plateau window W1,W2 for D0 and omega* (default: the "
-                   "30 %% and 60 %% frequency quantiles of a complete spectrum, "
+    p.add_argument("--omega-min", type=float, help="lowest edge of log bins [tau^-1]")
+    p.add_argument("--plateau", help="plateau window W1,W2 [tau^-1] for D0 and omega* (default: "
+                   "the 30 %% and 60 %% frequency quantiles of a complete spectrum, "
                    "[omega_k / 2, omega_k] of the k lowest modes)")
     p.add_argument("--out", required=True, help="spectrum file to write (.h5)")
     p.add_argument("--plot", help="PNG of D(omega), eps_perp/eps_par and participation")
@@ -84,10 +86,30 @@ def validate(args):
         raise ParjamError("--method slice needs --window WA,WB")
 
 
+def option_conflicts(args):
+    """One-line warnings for PETSc options that contradict the command line: -modes_eps_nev
+    sets SLEPc's number of pairs after --k did (it used to end in exit 4 without a word), and
+    -modes_eps_interval the slicing interval after --window did."""
+    opts = env.petsc().Options()
+    out = []
+    if args.k is not None and opts.hasName("modes_eps_nev"):
+        nev = opts.getString("modes_eps_nev")
+        if nev != str(args.k):
+            out.append(f"-modes_eps_nev {nev} contradicts --k {args.k}: shift-and-invert may "
+                       f"then stop after {nev} pairs and report the others missing (exit 4), "
+                       f"the dense solver ignores it; --k alone sets the number of modes")
+    if args.window is not None and opts.hasName("modes_eps_interval"):
+        out.append(f"-modes_eps_interval {opts.getString('modes_eps_interval')} overrides the "
+                   f"slicing interval of --window {args.window} (the dense solver ignores it); "
+                   f"--window alone sets it")
+    return out
+
+
 def summary_line(kind, spec, dos):
     w = spec.frequency
-    rng = f"omega {w[0]:.4g} .. {w[-1]:.4g}" if len(w) else "no modes"
-    extra = (f", D0 = {dos['D0']:.4g}, omega* = {dos['omega_star']:.4g}" if dos else "")
+    rng = f"omega {w[0]:.4g} .. {w[-1]:.4g} {units.text('frequency')}" if len(w) else "no modes"
+    extra = (f", D0 = {dos['D0']:.4g} {units.text('dos')}, omega* = {dos['omega_star']:.4g} "
+             f"{units.text('frequency')}" if dos else "")
     return (f"{kind}: {len(w)} modes by {spec.method} ({rng}), max residual "
             f"{spec.error.max() if len(w) else 0:.1e}, {spec.seconds:.2f} s{extra}")
 
@@ -99,6 +121,9 @@ def run(args):
     validate(args)
     outputs.check(comm, files=[("--out", p) for p in output_paths(args.out, args.matrix).values()]
                   + [("--plot", args.plot)], inputs=[args.packing])
+    for line in option_conflicts(args):
+        if rank == 0:
+            print(f"parjam: warning: {line}", file=sys.stderr, flush=True)
     progress = Progress(comm.tompi4py(), args.quiet, "modes: ")
     # this rank's rows of the file only (parjam.files.rowio), kept for the output's /particles/all
     rows = rowio.read_rows(comm, args.packing)

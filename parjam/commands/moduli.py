@@ -50,15 +50,18 @@ def run(args):
 
 
 def print_summary(mod, out):
+    from parjam import units
+
     s = mod.summary()
     unstable = s["G_min"] < 0.0
+    u = units.text("modulus", len(mod.stress))  # the stress tensor is d x d
     lines = [
         f"N' / Nc           {s['N_active']} / {s['Nc']}",
-        f"pressure p        {s['pressure']:.6e}",
-        f"bulk modulus B    {s['B']:.6e}   (affine {s['B_affine']:.6e})",
-        f"shear modulus G   {s['G']:.6e}   (affine {s['G_affine']:.6e})",
+        f"pressure p        {s['pressure']:.6e} {u}",
+        f"bulk modulus B    {s['B']:.6e} {u}   (affine {s['B_affine']:.6e})",
+        f"shear modulus G   {s['G']:.6e} {u}   (affine {s['G_affine']:.6e})",
         f"G / B             {s['G_over_B']:.6e}",
-        f"softest shear     {s['G_min']:.6e}"
+        f"softest shear     {s['G_min']:.6e} {u}"
         + ("   UNSTABLE to some shear in this fixed box" if unstable else ""),
         f"solver            {mod.solver['ksp_type']}/{mod.solver['pc_type']}, iterations "
         f"{' '.join(str(i) for i in s['iterations'])}, max residual {s['max_residual']:.1e}",

@@ -8,6 +8,7 @@ import sys
 import numpy as np
 
 from parjam.errors import ParjamError, UnjammedError
+from parjam.progress import member
 from parjam.pack.packing import DISPERSITIES
 from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DPHI, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
                              DEFAULT_PHI_START, DEFAULT_RATIO, LADDERS, PHIC_METHODS,
@@ -214,7 +215,8 @@ def prepare_output(args, params):
     notes = [f"removed stale temporary file {name}"
              for name in manifest.remove_stale_temporaries(args.out)]
     done, damaged = manifest.finished_members(args.out, params)
-    notes += [f"member {m}: files missing or changed since they were written: recomputing"
+    notes += [f"{member(m)} (member{m:04d}_*): files missing or changed since they were "
+              f"written: recomputing"
               for m in damaged]
     if not args.resume:
         done = {}
@@ -313,7 +315,7 @@ def _run(args):
                 break  # another group failed: its line ends the run
             try:
                 rows += pack_member(protocol, m, comm,
-                                    progress.group(comm, f"member {m} of {args.members}: "),
+                                    progress.group(comm, f"{member(m, args.members)}: "),
                                     params)
             except MemberIncomplete as exc:  # its jammed states are written; the others go on
                 rows += exc.rows
@@ -349,7 +351,7 @@ def _run(args):
     if world.getRank() == 0:
         for m, files in sorted(done.items()):
             all_rows.append(rows_from_files(args.out, m, files))
-        print_table([r for part in all_rows for r in part])
+        print_table([r for part in all_rows for r in part], args.dim)
         line = stopped_line(incomplete, args.members)
         if line:  # after the table, on the same stream: never inside it
             print(line, flush=True)

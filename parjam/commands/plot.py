@@ -307,13 +307,18 @@ def _dos(paths, out, args):
 
     from parjam.plot.spectra import ensemble_dos_figure
 
+    from parjam.plot.labels import describe, title
+
+    about = describe(paths[0])
     with h5py.File(paths[0], "r") as f:
         g = f["dos"]
         err = g["density_error"][()] if "density_error" in g else None
         label, ws = g.attrs.get("matrix", "ensemble"), g.attrs.get("omega_star")
-        ensemble_dos_figure(g["omega"][()], g["density"][()], err, out,
-                            label.decode() if isinstance(label, bytes) else str(label),
-                            None if ws is None else float(ws))
+        label = label.decode() if isinstance(label, bytes) else str(label)
+        ensemble_dos_figure(g["omega"][()], g["density"][()], err, out, label,
+                            None if ws is None else float(ws),
+                            title(about.get("n"), about.get("d"), about.get("state"),
+                                  about.get("members"), rf"$D(\omega)$ of the {label} matrix"))
 
 
 def _structure(paths, out, args):

@@ -140,6 +140,9 @@ def write(comm, path, res, vectors, prov):
 
 
 def print_summary(res, out):
+    from parjam import units
+
+    k = units.text("stiffness")  # trial energies <dR|M|dR> and omega^2 of unit modes
     s = res.summary()
     cs = res.cs
     exp = f"{s['expected']}" if s["expected"] is not None else "n/a (not isostatic)"
@@ -156,9 +159,9 @@ def print_summary(res, out):
         f"f(x) minimum c    {s['c']:.3f} ({s['c_nontrivial']:.3f} without the localised modes)",
         "q'/q              " + "  ".join(f"e0={e0:g}: {fr:.3f}" for e0, fr in res.fractions),
         f"trial modes       q' = {s['q_prime']} with e > {s['e0']:g}: max energy "
-        f"{_fmt(s['trial_energy_max'])} <= omega_L^2 = {s['omega_L2']:.3e} (Eq. kkk)",
+        f"{_fmt(s['trial_energy_max'])} <= omega_L^2 = {s['omega_L2']:.3e} {k} (Eq. kkk)",
         f"variational       {s['n_below_2omega_t2']} eigenmodes with omega^2 <= 2 omega_t^2 = "
-        f"{2 * s['omega_t2']:.3e} (need >= q'/2 = {s['q_prime'] / 2:g}): "
+        f"{2 * s['omega_t2']:.3e} {k} (need >= q'/2 = {s['q_prime'] / 2:g}): "
         f"{'ok' if s['variational_ok'] else 'VIOLATED'}",
         f"time / memory     count {res.solver['seconds_count']:.2f} s, null space "
         f"{res.solver['seconds_null_space']:.2f} s, analysis "

@@ -35,7 +35,11 @@ def write_h5md_header(f, provenance=None):
     creator = h5md.create_group("creator")
     creator.attrs["name"] = fixed_string("parjam")
     creator.attrs["version"] = fixed_string(__version__)
-    module = h5md.create_group("modules").create_group("parjam")
+    modules = h5md.create_group("modules")
+    units = modules.create_group("units")  # H5MD units module: every dimensionful dataset
+    units.attrs["version"] = np.array([1, 0], dtype=np.int32)  # names its unit (file-format.md)
+    units.attrs["system"] = fixed_string(UNIT_SYSTEM)
+    module = modules.create_group("parjam")
     module.attrs["version"] = fixed_string(__version__)
     for key, val in (provenance or {}).items():
         val = _attr(val)
@@ -51,7 +55,10 @@ def fixed_string(text):
 # Reduced units (H5MD units module: symbols separated by spaces, each with an optional power).
 # Lengths are in units of sigma (the smallest diameter of mono- and bidisperse packings) and
 # energies in units of epsilon (the prefactor of V(r)).
-LENGTH, ENERGY, FORCE = "sigma", "epsilon", "epsilon sigma-1"
+LENGTH, ENERGY, FORCE, TIME = "sigma", "epsilon", "epsilon sigma-1", "tau"
+STIFFNESS = "epsilon sigma-2"  # V'', Hessian eigenvalues and curvatures
+#: the units module's ``system``: reduced units, tau = sigma sqrt(m / epsilon), masses m = 1
+UNIT_SYSTEM = "reduced: sigma epsilon tau"
 
 
 def pressure_unit(d):
@@ -59,7 +66,8 @@ def pressure_unit(d):
 
 
 OBSERVABLE_UNITS = {"pressure": "pressure", "stress_tensor": "pressure",
-                    "energy_per_particle": ENERGY, "max_force": FORCE}
+                    "energy_per_particle": ENERGY, "max_force": FORCE,
+                    "curvature_shift": STIFFNESS, "lowest_curvature_found": STIFFNESS}
 
 
 def _attr(val):
@@ -126,9 +134,9 @@ def diameter_attrs():
 
 
 def _time_series(group, value, unit):
-    """An H5MD time-dependent element with one frame: step (int), time (float), value."""
+    """An H5MD time-dependent element with one frame: step (int), time (float, tau), value."""
     group.create_dataset("step", data=np.array([0], dtype=np.int64))
-    group.create_dataset("time", data=np.array([0.0]))
+    group.create_dataset("time", data=np.array([0.0])).attrs["unit"] = fixed_string(TIME)
     ds = group.create_dataset("value", data=value)
     if unit:
         ds.attrs["unit"] = fixed_string(unit)
@@ -171,7 +179,7 @@ def contact_attrs():
     """Units of the per-contact datasets of /connectivity (``contacts`` has none: its
     ``particles_group`` reference is set by :func:`link_contacts`)."""
     return {"force": {"unit": fixed_string(FORCE)},
-            "stiffness": {"unit": fixed_string("epsilon sigma-2")}}
+            "stiffness": {"unit": fixed_string(STIFFNESS)}}
 
 
 def link_contacts(f):
@@ -196,7 +204,7 @@ def _write_contacts(f, pack, net):
     g.create_dataset("contacts", data=np.stack([c.i, c.j], axis=1).reshape(-1, 2))
     g.create_dataset("overlap", data=net.overlap)
     g.create_dataset("force", data=net.force).attrs["unit"] = fixed_string(FORCE)
-    g.create_dataset("stiffness", data=net.stiffness).attrs["unit"] = fixed_string("epsilon sigma-2")
+    g.create_dataset("stiffness", data=net.stiffness).attrs["unit"] = fixed_string(STIFFNESS)
     link_contacts(f)  # H5MD connectivity module: an object reference to the particles group
 
 
@@ -371,27 +379,3 @@ def sha256(path):
             h.update(chunk)
     return h.hexdigest()
 
-
-def write_extxyz(path, pack, net):
-    """Extended XYZ: Lattice, then per particle type (the integer species), position, radius and
-    rattler flag.  No ``species`` column: ASE reads that one as chemical symbols; ``type`` is
-    OVITO's particle type and reaches ASE as ``atoms.arrays["type"]`` (docs/file-format.md)."""
-    d = pack.d
-    lattice = " ".join(
-        f"{pack.L if a == b else 0.0:.17g}" for a in range(3) for b in range(3))
-    if d == 2:  # a thin third dimension so that 3D viewers accept it
-        lattice = lattice.rsplit(" ", 1)[0] + f" {max(pack.diam):.17g}"
-    props = "Properties=type:I:1:pos:R:3:radius:R:1:rattler:I:1"
-    species = pack.meta.get("species")
-    species = np.zeros(pack.n, np.int64) if species is None else np.asarray(species, np.int64)
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w") as fh:
-        fh.write(f"{pack.n}\n")
-        fh.write(f'Lattice="{lattice}" {props} pbc="T T {"T" if d == 3 else "F"}" '
-                 f"phi={pack.phi:.17g} alpha={pack.alpha:.17g} epsilon={pack.eps:.17g} "
-                 f"dimension={d}\n")
-        for k in range(pack.n):
-            xyz = list(pack.pos[k]) + [0.0] * (3 - d)
-            fh.write(f"{species[k]} {xyz[0]:.17g} {xyz[1]:.17g} {xyz[2]:.17g} "
-                     f"{pack.diam[k] / 2:.17g} {int(net.rattler[k])}\n")
-    os.replace(tmp, path)

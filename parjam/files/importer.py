@@ -1,13 +1,14 @@
-"""Configurations made elsewhere (LAMMPS, jax-md, HOOMD, ASE, an experiment) as parjam packings:
-extended XYZ, LAMMPS data and dump files, and H5MD files of other programs.
+"""Configurations made elsewhere (LAMMPS, jax-md, HOOMD, ASE, OVITO, an experiment) as parjam
+packings: extended XYZ, LAMMPS data and dump files (parjam.files.lammpsio), GSD files and H5MD
+files of other programs.
 
 Each reader returns positions, diameters, species and the box edges of a periodic cubic (3D)
 or square (2D) box, in the file's length unit; :func:`load` validates them and rescales every
 length by one factor so that the smallest diameter is 1 (parjam's unit sigma, in which the
 energy window of the phi_c search and --ftol are set).  Nothing is guessed silently: a file
-without diameters needs ``diameters`` (one per species or LAMMPS type), a triclinic or
-non-cubic box, a missing column or a malformed line is a one-line ParjamError naming the file
-and the line.
+without diameters needs ``diameters`` (one per species or LAMMPS type); a triclinic,
+non-cubic or non-periodic box, a missing column, a malformed line, or a volume fraction that
+``parjam pack --from`` refuses is a one-line ParjamError naming the file and the line.
 """
 
 import os
@@ -16,16 +17,25 @@ import re
 import h5py
 import numpy as np
 
-from parjam.files import h5md
+from parjam.files import export, h5md, lammpsio
 from parjam.errors import ParjamError
 from parjam.files.h5md import read_packing
 from parjam.net.system import Packing
 
-FORMATS = ("extxyz", "lammps-data", "lammps-dump", "h5md")
+FORMATS = ("extxyz", "lammps-data", "lammps-dump", "gsd", "h5md")
 EXTENSIONS = {".xyz": "extxyz", ".extxyz": "extxyz", ".data": "lammps-data",
               ".lmp": "lammps-data", ".lammps": "lammps-data", ".dump": "lammps-dump",
-              ".lammpstrj": "lammps-dump", ".h5": "h5md", ".h5md": "h5md", ".hdf5": "h5md"}
+              ".lammpstrj": "lammps-dump", ".gsd": "gsd", ".h5": "h5md", ".h5md": "h5md",
+              ".hdf5": "h5md"}
+ATOM_STYLES = lammpsio.STYLES
 MAX_BYTES = 4 << 30  # a text file larger than this is refused before it is read
+PHI_MIN = 0.05  # the volume fractions `parjam pack` starts from (its --phi-start range)
+
+
+def phi_max(d):
+    """The largest volume fraction ``parjam pack`` starts from (its --phi-start range): 1 in
+    3D; 1.5 in 2D, where bidisperse discs overlap more before a box is full."""
+    return 1.0 + 0.5 * (d == 2)
 
 
 class Raw:
@@ -48,19 +58,23 @@ def detect_format(path, fmt=None):
                       f"give --format ({', '.join(FORMATS)})")
 
 
-def load(path, fmt=None, diameters=None, dim=None, alpha=2.0):
+def load(path, fmt=None, diameters=None, dim=None, alpha=2.0, atom_style=None):
     """A validated parjam Packing from a foreign file (module doc); ``meta`` records the source,
     its format and the length scale applied (new length = old length * length_scale)."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise ParjamError(f"{path}: no such file")
     fmt = detect_format(path, fmt)
-    if fmt != "h5md" and os.path.getsize(path) > MAX_BYTES:
+    if atom_style is not None and fmt != "lammps-data":
+        raise ParjamError(f"{path}: --atom-style is for LAMMPS data files, this is {fmt}")
+    if fmt not in ("h5md", "gsd") and os.path.getsize(path) > MAX_BYTES:
         raise ParjamError(f"{path}: {os.path.getsize(path)} bytes: too large to import")
-    reader = {"extxyz": read_extxyz, "lammps-data": read_lammps_data,
-              "lammps-dump": read_lammps_dump, "h5md": read_h5md}[fmt]
     try:
-        raw = reader(path, dim)
+        if fmt == "lammps-data":
+            raw = read_lammps_data(path, dim, atom_style)
+        else:
+            raw = {"extxyz": read_extxyz, "lammps-dump": read_lammps_dump, "gsd": read_gsd,
+                   "h5md": read_h5md}[fmt](path, dim)
     except (ValueError, IndexError, UnicodeDecodeError) as exc:
         raise ParjamError(f"{path}: not a readable {fmt} file ({exc})") from None
     pos, edges = np.asarray(raw.pos, float), np.atleast_1d(np.asarray(raw.edges, float))
@@ -77,10 +91,23 @@ def load(path, fmt=None, diameters=None, dim=None, alpha=2.0):
     scale = 1.0 / float(diam.min())
     alpha = raw.alpha if raw.alpha is not None else alpha
     pack = h5md.validated_packing(path, pos * scale, diam * scale, edges * scale,
-                                {"alpha": alpha})  # wraps into the box, refuses duplicates
+                                  {"alpha": alpha})  # wraps into the box, refuses duplicates
+    _check_phi(path, pack)
     pack.meta = {"species": species, "source": os.path.abspath(path), "source_format": fmt,
                  "length_scale": scale}
     return pack
+
+
+def _check_phi(path, pack):
+    """The volume fraction must be one ``parjam pack --from`` starts from (commands/pack.py's
+    range of --phi-start): refused here, before a file is written that it would refuse."""
+    phi, top = pack.phi, phi_max(pack.d)
+    if not PHI_MIN <= phi < top:
+        why = ("the spheres' volume exceeds the box's: the overlaps are too large for a "
+               "packing parjam can jam" if phi >= top else "too dilute to start a packing from")
+        raise ParjamError(f"{path}: volume fraction phi = {phi:.6g} lies outside "
+                          f"[{PHI_MIN:g}, {top:g}) in {pack.d}D ({why}); `parjam pack --from` "
+                          f"starts only from that range")
 
 
 def _diameters_by_species(path, species, diameters):
@@ -154,35 +181,75 @@ def read_extxyz(path, dim=None):
     cell = cell.reshape(3, 3)
     if np.any(np.abs(cell - np.diag(np.diag(cell))) > 1e-12 * np.abs(cell).max()):
         raise ValueError(f"line {k + 2}: a triclinic Lattice; parjam needs a cubic box")
-    pbc = info.get("pbc", "T T T").split()
-    d = dim or int(info.get("dimension", 2 if pbc[2:] in (["F"], ["False"], ["0"]) else 3))
+    pbc = _pbc(info.get("pbc", "T T T"), k + 2)
+    d = _xyz_dimension(info, pbc, dim, k + 2)
     cols = _properties(info.get("Properties", "species:S:1:pos:R:3"), k + 2)
     rows = [lines[k + 2 + j].split() for j in range(n)]
     width = sum(c for _, _, c in cols.values())
     for j, row in enumerate(rows):
         if len(row) != width:
             raise ValueError(f"line {k + 3 + j}: {len(row)} columns, Properties give {width}")
-    if "pos" not in cols:
-        raise ValueError(f"line {k + 2}: Properties has no pos")
-    table = np.array(rows, dtype=object)
+    if "pos" not in cols or cols["pos"][2] not in (2, 3):
+        raise ValueError(f"line {k + 2}: Properties has no pos of 2 or 3 components")
+    table = np.array(rows, dtype=object).reshape(n, width)
 
     def column(name, kind=float):
         start, _, count = cols[name]
         return table[:, start:start + count].astype(kind)
 
-    pos = column("pos")[:, :d]
+    pos = column("pos")
+    if pos.shape[1] < d:
+        raise ValueError(f"line {k + 2}: {d}D, but pos has {pos.shape[1]} components")
+    if d == 2 and pos.shape[1] == 3 and n and np.ptp(pos[:, 2]) != 0.0:
+        raise ValueError(f"line {k + 2}: a 2D packing (pbc or dimension) whose z coordinates "
+                         f"vary: a 3D configuration that is not periodic along z?")
+    pos = pos[:, :d]
     diam = None
     if "radius" in cols:
         diam = 2.0 * column("radius")[:, 0]
     elif "diameter" in cols:
         diam = column("diameter")[:, 0]
     species = None
-    for name in ("type", "species", "Z"):
+    for name in ("species", "type", "Z"):
         if name in cols:
             species = _species_ids(column(name, str)[:, 0])
             break
     alpha = float(info["alpha"]) if "alpha" in info else None
     return Raw(pos, diam, species, np.diag(cell)[:d], "extxyz", alpha)
+
+
+_TRUE, _FALSE = ("t", "true", "1"), ("f", "false", "0")
+
+
+def _pbc(text, line):
+    """The three periodicity flags of an extended XYZ header."""
+    words = text.lower().split()
+    if len(words) != 3 or any(w not in _TRUE + _FALSE for w in words):
+        raise ValueError(f'line {line}: pbc="{text}": expected three flags T or F')
+    return [w in _TRUE for w in words]
+
+
+def _xyz_dimension(info, pbc, dim, line):
+    """2 or 3: ``dim`` (--dim), else the header's ``dimension``, else 2 when z is not
+    periodic; every direction of the packing must be periodic."""
+    d = None
+    if "dimension" in info:
+        try:
+            d = int(info["dimension"])
+        except ValueError:
+            d = None
+        if d not in (2, 3):
+            raise ValueError(f"line {line}: dimension={info['dimension']}: parjam packings are "
+                             f"2D or 3D")
+        if dim is not None and dim != d:
+            raise ValueError(f"line {line}: the file says dimension={d}, --dim says {dim}")
+    d = dim or d or (3 if pbc[2] else 2)
+    flat = [a for a, p in zip("xyz"[:d], pbc) if not p]
+    if flat:
+        raise ValueError(f'line {line}: not periodic along {" and ".join(flat)} (pbc='
+                         f'"{" ".join("T" if p else "F" for p in pbc)}"): parjam needs a '
+                         f'periodic box in every direction of a {d}D packing')
+    return d
 
 
 def _properties(text, line):
@@ -191,6 +258,8 @@ def _properties(text, line):
         raise ValueError(f"line {line}: malformed Properties {text!r}")
     cols, start = {}, 0
     for name, kind, count in zip(parts[::3], parts[1::3], parts[2::3]):
+        if not count.isdigit() or int(count) < 1:
+            raise ValueError(f"line {line}: Properties column {name} has {count!r} components")
         cols[name] = (start, kind, int(count))
         start += int(count)
     return cols
@@ -208,70 +277,13 @@ def _species_ids(labels):
 
 # --- LAMMPS ------------------------------------------------------------------------------------
 
-def read_lammps_data(path, dim=None):
-    """A LAMMPS data file (write_data): header counts and box, the Atoms section in atom_style
-    atomic (id type x y z) or sphere (id type diameter density x y z), image flags allowed.  2D
-    (``dimension 2`` in LAMMPS) when ``dim`` is 2 or every z is equal."""
-    with open(path) as fh:
-        lines = [ln.split("#", 1) for ln in fh.read().splitlines()]
-    n, bounds, k, style = None, {}, 1, None
-    tilt = None
-    while k < len(lines):
-        body = lines[k][0].strip()
-        if not body:
-            k += 1
-            continue
-        words = body.split()
-        if len(words) == 2 and words[1] == "atoms":
-            n = int(words[0])
-        elif len(words) == 4 and words[2][1:] == "lo" and words[3][1:] == "hi":
-            bounds[words[2][0]] = (float(words[0]), float(words[1]))
-        elif words[-3:] == ["xy", "xz", "yz"]:
-            tilt = [float(w) for w in words[:3]]
-        elif words[0] == "Atoms":
-            style = lines[k][1].strip().split()[0] if len(lines[k]) > 1 and \
-                lines[k][1].strip() else None
-            k += 1
-            break
-        elif words[0][0].isalpha():  # another section before Atoms (Masses, ...)
-            pass
-        k += 1
-    else:
-        raise ValueError("no Atoms section")
-    if n is None:
-        raise ValueError("no 'N atoms' line in the header")
-    if tilt is not None and any(tilt):
-        raise ValueError("a triclinic box; parjam needs a cubic box")
-    if set(bounds) != {"x", "y", "z"}:
-        raise ValueError("the header needs xlo xhi, ylo yhi and zlo zhi")
-    rows = []
-    while k < len(lines) and len(rows) < n:
-        body = lines[k][0].split()
-        if body:
-            rows.append((k + 1, body))
-        k += 1
-    if len(rows) < n:
-        raise ValueError(f"the Atoms section holds {len(rows)} lines for {n} atoms")
-    width = {len(r) for _, r in rows}
-    if len(width) != 1:
-        line = next(ln for ln, r in rows if len(r) != len(rows[0][1]))
-        raise ValueError(f"line {line}: not as many columns as the first atom")
-    width = width.pop()
-    style = style or {5: "atomic", 8: "atomic", 7: "sphere", 10: "sphere"}.get(width)
-    layout = {"atomic": (None, 2), "sphere": (2, 4)}
-    if style not in layout:
-        raise ValueError(f"atom_style {style or '(unknown, ' + str(width) + ' columns)'}: "
-                         f"parjam reads atomic and sphere")
-    dcol, xcol = layout[style]
-    data = np.array([r for _, r in rows], dtype=float)
-    order = np.argsort(data[:, 0], kind="stable")
-    data = data[order]
-    lo = np.array([bounds[a][0] for a in "xyz"])
-    edges = np.array([bounds[a][1] - bounds[a][0] for a in "xyz"])
-    pos = data[:, xcol:xcol + 3] - lo
+def read_lammps_data(path, dim=None, atom_style=None):
+    """A LAMMPS data file (parjam.files.lammpsio.read_data: atomic, charge, molecular, full or
+    sphere; image flags allowed).  2D (``dimension 2`` in LAMMPS) when ``dim`` is 2 or every z
+    is equal."""
+    pos, diam, types, edges = lammpsio.read_data(path, atom_style)
     d = _lammps_dim(pos, dim)
-    diam = data[:, dcol] if dcol is not None else None
-    return Raw(pos[:, :d], diam, data[:, 1].astype(np.int64), edges[:d], "lammps-data")
+    return Raw(pos[:, :d], diam, types, edges[:d], "lammps-data")
 
 
 def _lammps_dim(pos, dim):
@@ -281,60 +293,14 @@ def _lammps_dim(pos, dim):
 
 
 def read_lammps_dump(path, dim=None):
-    """The last snapshot of a LAMMPS text dump (dump atom/custom): ITEM: BOX BOUNDS (orthogonal,
-    periodic), ITEM: ATOMS with id, type, x y z (or xs ys zs scaled, or xu yu zu) and radius or
-    diameter when present."""
-    with open(path) as fh:
-        lines = fh.read().splitlines()
-    starts = [k for k, ln in enumerate(lines) if ln.startswith("ITEM: TIMESTEP")]
-    if not starts:
-        raise ValueError("no 'ITEM: TIMESTEP': not a LAMMPS dump")
-    k = starts[-1]
-    n = edges = lo = cols = None
-    while k < len(lines):
-        ln = lines[k]
-        if ln.startswith("ITEM: NUMBER OF ATOMS"):
-            n = int(lines[k + 1])
-        elif ln.startswith("ITEM: BOX BOUNDS"):
-            flags = ln.split()[3:]
-            if "xy" in flags:
-                raise ValueError(f"line {k + 1}: a triclinic box; parjam needs a cubic box")
-            if any(f != "pp" for f in flags):
-                raise ValueError(f"line {k + 1}: boundaries {' '.join(flags)}; parjam needs "
-                                 f"periodic (pp pp pp)")
-            b = np.array([lines[k + 1 + a].split()[:2] for a in range(3)], dtype=float)
-            lo, edges = b[:, 0], b[:, 1] - b[:, 0]
-        elif ln.startswith("ITEM: ATOMS"):
-            cols = ln.split()[2:]
-            k += 1
-            break
-        k += 1
-    if n is None or edges is None or cols is None:
-        raise ValueError("the last snapshot lacks NUMBER OF ATOMS, BOX BOUNDS or ATOMS")
-    rows = [lines[k + j].split() for j in range(n)]
-    for j, row in enumerate(rows):
-        if len(row) != len(cols):
-            raise ValueError(f"line {k + j + 1}: {len(row)} columns, ITEM: ATOMS names "
-                             f"{len(cols)}")
-    data = np.array(rows, dtype=float)
-    if "id" in cols:
-        data = data[np.argsort(data[:, cols.index("id")], kind="stable")]
-    for names, scaled in ((("x", "y", "z"), False), (("xu", "yu", "zu"), False),
-                          (("xs", "ys", "zs"), True)):
-        if all(c in cols for c in names):
-            pos = data[:, [cols.index(c) for c in names]]
-            pos = pos * edges if scaled else pos - lo
-            break
-    else:
-        raise ValueError("ITEM: ATOMS has no x y z (or xs ys zs, xu yu zu) columns")
-    diam = None
-    if "radius" in cols:
-        diam = 2.0 * data[:, cols.index("radius")]
-    elif "diameter" in cols:
-        diam = data[:, cols.index("diameter")]
-    species = data[:, cols.index("type")].astype(np.int64) if "type" in cols else None
+    """The last snapshot of a LAMMPS text dump (parjam.files.lammpsio.read_dump): id, type,
+    x y z (or xs ys zs scaled, or xu yu zu), radius or diameter when present."""
+    pos, diam, types, edges, periodic = lammpsio.read_dump(path)
     d = _lammps_dim(pos, dim)
-    return Raw(pos[:, :d], diam, species, edges[:d], "lammps-dump")
+    if not all(periodic[:d]):
+        raise ValueError(f"boundaries {' '.join('pp' if p else 'not pp' for p in periodic)}: "
+                         f"parjam needs a periodic box along every axis of a {d}D packing")
+    return Raw(pos[:, :d], diam, types, edges[:d], "lammps-dump")
 
 
 # --- H5MD of other programs --------------------------------------------------------------------
@@ -361,11 +327,7 @@ def read_h5md(path, dim=None):
                         for b in np.atleast_1d(g["box"].attrs.get("boundary", ["periodic"]))]
             if any(b != "periodic" for b in boundary):
                 raise ValueError(f"box boundary {boundary}: parjam needs a periodic box")
-            edges = _last_frame(g["box"], "edges", 1)
-            if edges.ndim == 2:
-                if np.any(edges - np.diag(np.diag(edges))):
-                    raise ValueError("a triclinic box; parjam needs a cubic box")
-                edges = np.diag(edges)
+            edges = _box_edges(g["box"], pos.shape[-1])
             species = _last_frame(g, "species", 1)
             diam = _last_frame(g, "diameter", 1)
             if diam is None:
@@ -382,8 +344,32 @@ def read_h5md(path, dim=None):
     return Raw(pos[:, :d], diam, species, np.atleast_1d(edges)[:d], "h5md", alpha)
 
 
+def _box_edges(box, d):
+    """The box edges of the last frame: a vector (d,) or a matrix (d, d), fixed or a time
+    series (T, d) or (T, d, d); a matrix must be diagonal (H5MD allows both forms)."""
+    if "edges" not in box:
+        raise ValueError(f"{box.name} has no edges (parjam needs a periodic box)")
+    obj = box["edges"]
+    series = isinstance(obj, h5py.Group)
+    arr = _last_frame(box, "edges", None)
+    if arr.shape == ():  # one number: a cube (older writers)
+        arr = np.full(d, float(arr))
+    if not series and arr.shape not in ((d,), (d, d)):
+        raise ValueError(f"{obj.name} of shape {arr.shape}: expected ({d},) or ({d}, {d})")
+    if series and arr.shape not in ((d,), (d, d)):
+        raise ValueError(f"{obj.name}/value frames of shape {arr.shape}: expected ({d},) or "
+                         f"({d}, {d})")
+    if arr.ndim == 2:
+        if np.any(arr - np.diag(np.diag(arr))):
+            raise ValueError(f"{obj.name}: a triclinic box (off-diagonal edges); parjam needs "
+                             f"a cubic box")
+        arr = np.diag(arr).copy()
+    return arr
+
+
 def _last_frame(g, name, ndim):
-    """A fixed dataset or the last frame of a time series; None if absent."""
+    """A fixed dataset or the last frame of a time series; None if absent.  A fixed dataset
+    with ``ndim + 1`` axes is read as frames (``ndim`` None: never)."""
     if name not in g:
         return None
     obj = g[name]
@@ -399,7 +385,76 @@ def _last_frame(g, name, ndim):
     if obj.dtype.kind not in "biuf":
         raise ValueError(f"{obj.name} is not numeric")
     arr = np.asarray(obj[()], dtype=float)
-    return arr[-1] if arr.ndim == ndim + 1 else arr
+    return arr[-1] if ndim is not None and arr.ndim == ndim + 1 and len(arr) else arr
+
+
+# --- GSD (HOOMD-blue) ---------------------------------------------------------------------------
+
+def read_gsd(path, dim=None):
+    """The last frame of a GSD file (HOOMD schema, the ``gsd`` package): box (Lx, Ly, Lz with
+    zero tilts; 2D when ``dimensions`` is 2), positions centred on the origin, typeid as the
+    species, diameter when the file has it (the gsd package would otherwise return 1 for every
+    particle: such a file needs --diameters like any file without diameters).  The exact
+    float64 positions and diameters of ``parjam export`` (``log/parjam/*``) replace the
+    single-precision arrays when they round to them; otherwise the single-precision values are
+    used (another program rewrote the particles)."""
+    try:
+        import gsd.fl
+        import gsd.hoomd
+    except ImportError:
+        raise ParjamError(f"{path}: reading GSD files needs the gsd package (pip install "
+                          f"gsd)") from None
+    try:
+        with gsd.fl.open(path, "r") as fl:
+            frames = fl.nframes
+            if frames == 0:
+                raise ValueError("no frame")
+            last = frames - 1
+            has_diameter = any(fl.chunk_exists(frame=f, name="particles/diameter")
+                               for f in {0, last})
+        with gsd.hoomd.open(path, "r") as traj:
+            frame = traj[-1]
+    except (OSError, RuntimeError, KeyError) as exc:  # not a GSD file, damaged inside
+        raise ValueError(f"unreadable GSD ({exc})") from None
+    box = np.asarray(frame.configuration.box, float)
+    dims = int(frame.configuration.dimensions)
+    d = dim or (2 if dims == 2 or box[2] == 0 else 3)
+    if np.any(box[3:] != 0):
+        raise ValueError(f"a triclinic box (tilts {box[3:].tolist()}); parjam needs a cubic box")
+    n = int(frame.particles.N)
+    single = np.asarray(frame.particles.position, np.float32).reshape(n, 3)
+    if d == 2 and n and np.ptp(single[:, 2]) != 0.0:
+        raise ValueError("a 2D box whose z coordinates vary")
+    edges = box[:d]
+    log = frame.log or {}
+    exact_edge = _exact(log, "parjam/box_edge", (1,))
+    if exact_edge is not None and np.all(np.float32(exact_edge[0]) == np.float32(edges)):
+        edges = np.full(d, exact_edge[0])
+    pos = single[:, :d].astype(float) + edges / 2.0  # HOOMD's box is centred on the origin
+    diam = np.asarray(frame.particles.diameter, np.float32) if has_diameter else None
+    exact = _exact(log, "parjam/position", (n, 3))
+    if exact is not None and np.array_equal(
+            export.centred_single(exact, float(edges[0]))[:, :d], single[:, :d]):
+        pos = exact[:, :d]
+    if diam is not None:
+        exact = _exact(log, "parjam/diameter", (n,))
+        diam = exact if exact is not None and np.array_equal(exact.astype(np.float32), diam) \
+            else diam.astype(float)
+    species = np.asarray(frame.particles.typeid, np.int64)
+    alpha = None
+    if "parjam/alpha" in log:
+        alpha = float(np.asarray(log["parjam/alpha"]).reshape(-1)[0])
+    return Raw(pos, diam, species, edges, "gsd", alpha)
+
+
+def _exact(log, key, shape):
+    """The float64 array ``log[key]`` of ``parjam export`` if it has ``shape``, else None."""
+    if key not in log:
+        return None
+    arr = np.asarray(log[key])
+    if arr.shape != shape or arr.dtype.kind != "f":
+        return None
+    return arr.astype(float)
 
 
 def from_file(path, alpha):

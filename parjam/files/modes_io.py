@@ -49,7 +49,27 @@ def mode_attrs(spec, system, packing_path, ranks):
         "packing_file": os.path.abspath(packing_path) if packing_path else "",
         "packing_sha256": h5md.sha256(packing_path) if packing_path else "",
         "solver_info": json.dumps(spec.info, default=float),
+        **packing_state(packing_path),
     }
+
+
+def packing_state(path):
+    """What figures name a spectrum by: the packing's state label (``dphi1.0e-04``, ``phi_c``,
+    ``p1.0e-03``, ``imported``), N and phi, from its /parameters (empty if unreadable)."""
+    if not path:
+        return {}
+    try:
+        with h5py.File(path, "r") as f:
+            par = f["parameters"].attrs if "parameters" in f else {}
+            state = par.get("state", "")
+            out = {"state": state.decode() if isinstance(state, bytes) else str(state)}
+            if "phi" in par:
+                out["phi"] = float(np.asarray(par["phi"]).reshape(-1)[0])
+            if "particles/all/diameter" in f:
+                out["n"] = int(f["particles/all/diameter"].shape[0])
+            return out
+    except (OSError, KeyError, ValueError, TypeError):
+        return {}
 
 
 def write_spectrum(comm, path, spec, system, rows, dos, prov):
@@ -100,17 +120,22 @@ def write_modes(f, spec, attrs, dos, prov, d, L):
     g.create_dataset("eps_perp", data=spec.eps_perp)
     g.create_dataset("eps_par", data=spec.eps_par)
     rej = g.create_group("rejected")
-    rej.create_dataset("eigenvalue", data=spec.rejected_eigenvalue)
+    rej.create_dataset("eigenvalue", data=spec.rejected_eigenvalue).attrs["unit"] = \
+        h5md.fixed_string("tau-2")
     rej.create_dataset("error", data=spec.rejected_error)
     write_dos(f, dos)
 
 
+#: /dos datasets and their units: omega in 1/tau, D(omega) per unit omega in tau
+DOS_UNITS = {"omega": "tau-1", "edges": "tau-1", "density": "tau", "density_error": "tau"}
+
+
 def write_dos(f, dos):
     g = f.create_group("dos")
-    for key in ("omega", "edges", "density"):
-        g.create_dataset(key, data=dos[key])
-    if "density_error" in dos:
-        g.create_dataset("density_error", data=dos["density_error"])
+    for key in ("omega", "edges", "density", "density_error"):
+        if key in dos:
+            g.create_dataset(key, data=dos[key]).attrs["unit"] = h5md.fixed_string(
+                DOS_UNITS[key])
     for key, val in dos.items():
         if key not in ("omega", "edges", "density", "density_error"):
             g.attrs[key] = val

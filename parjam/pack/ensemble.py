@@ -8,6 +8,7 @@ import sys
 import numpy as np
 
 from parjam.errors import UnjammedError
+from parjam.progress import member as member_name
 from parjam.net import order
 from parjam.pack import staterows
 from parjam.pack.packing import RESOLVED_FRACTION, JamSettings, Jammer, LadderUnjammed
@@ -54,7 +55,7 @@ def member_states(args, member, comm, progress, checkpoint=None, start=None):
                 stopped = exc
                 for st in states:
                     st.info["ladder_unjammed_at"] = exc.step
-            resolution_flags(states, resolution, f"member {member} ")
+            resolution_flags(states, resolution, f"{member_name(member)} ")
             virial_flags(states)
         totals = {"fire_steps": jammer.total_fire, "newton_steps": jammer.total_newton,
                   "force_evaluations": jammer.ff.n_force_calls}

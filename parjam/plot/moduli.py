@@ -14,6 +14,7 @@ import h5py
 import numpy as np
 
 from parjam.plot import DPI, LEGEND_FONTSIZE, pyplot
+from parjam.plot.labels import axis, describe, readable_log_ticks, title
 from parjam.vib.structure import StructureFactor
 
 
@@ -45,11 +46,19 @@ def scaling_figure(results, path):
         s, err = f["all"]["G/B"]
         sel = x >= f["G_fit_from"]
         _fit_line(ax[2], x[sel], r[sel], s, col, f"slope {s:.2f} ± {err:.2f} (expected 0.5)")
-    for a, name in zip(ax, ("bulk modulus B", "shear modulus G", "G / B")):
+    rows0 = results[0]["rows"][0] if results and results[0]["rows"] else {}
+    dims = sorted({r["rows"][0]["d"] for r in results if r["rows"]})
+    d = dims[0] if len(dims) == 1 else "d"
+    for a, name, unit in zip(ax, ("bulk modulus B", "shear modulus G", "G / B"),
+                             ("modulus", "modulus", None)):
         a.set_xscale("log")
         a.set_yscale("log")
-        a.set(xlabel=r"$\Delta\phi$", title=name)
+        a.set(xlabel=r"$\Delta\phi$", title=name,
+              ylabel=axis(name.split()[-1], unit, d) if unit else name)
         a.legend(fontsize=LEGEND_FONTSIZE)
+    fig.suptitle(title(rows0.get("n") or rows0.get("N"), d if d != "d" else None,
+                       what="moduli against the distance to jamming"), fontsize=10)
+    readable_log_ticks(fig)
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
@@ -74,6 +83,7 @@ def structure_figure(path_h5, path, omega_max=None, bins=60):
         W = {"T": g["weight_T"][()], "L": g["weight_L"][()]}
         peaks = {"T": g["peak_T"][()], "L": g["peak_L"][()]}
 
+    about = describe(path_h5)
     sf = StructureFactor(omega, k, None, None, W["L"], W["T"], float(a["L"]))
     wmax = omega_max or 1.5 * np.nanmax(peaks["L"])
     edges = np.linspace(0, wmax, bins + 1)
@@ -94,9 +104,11 @@ def structure_figure(path_h5, path, omega_max=None, bins=60):
             ax[j].plot(kk, cf * kk, ":", color="magenta", lw=1.5, label="fit, smallest k")
         if "omega_star" in a:
             ax[j].axhline(a["omega_star"], color="orange", lw=1, label=r"$\omega^*$")
-        ax[j].set(xlabel="k", ylabel=r"$\omega$", ylim=(0, wmax),
-                  title=f"log10 F_{part}(k, omega)")
+        ax[j].set(xlabel=axis("k", "wavenumber"), ylabel=axis(r"$\omega$", "frequency"),
+                  ylim=(0, wmax), title=rf"$\log_{{10}} F_{part}(k, \omega)$")
         ax[j].legend(fontsize=LEGEND_FONTSIZE, loc="upper left")
+    fig.suptitle(title(about.get("n"), about.get("d"), about.get("state"),
+                       what="structure factors of the eigenmodes"), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
@@ -124,7 +136,11 @@ def lengths_figure(results, path):
     x = np.geomspace(0.1, 3, 10)
     ax.plot(x, 3 / x, "k-", lw=0.7, label="slope -1")
     ax.plot(x, 0.8 / np.sqrt(x), "k--", lw=0.7, label="slope -1/2")
-    ax.set(xscale="log", yscale="log", xlabel=r"dz $= z - 2d$", ylabel="length (diameters)")
+    ax.set(xscale="log", yscale="log", xlabel=r"dz $= z - 2d$", ylabel=axis("length", "length"))
+    ns = sorted({r.get("N") or r.get("n") for res in results for r in res["rows"]} - {None})
+    ax.set_title(title(ns[0] if len(ns) == 1 else None, what="lengths against dz"),
+                 fontsize=10)
+    readable_log_ticks(fig)
     handles, labels = ax.get_legend_handles_labels()
     unique = dict(zip(labels, handles))  # one entry per quantity and dimension
     ax.legend(unique.values(), unique.keys(), fontsize=LEGEND_FONTSIZE, ncol=2)
@@ -142,6 +158,9 @@ def moduli_files_figure(paths_h5, path):
         with h5py.File(p, "r") as f:
             a = f["moduli"].attrs
             rows.append([float(a[k]) for k in ("pressure", "B", "G", "G_min")])
+    about = [describe(p) for p in paths_h5]
+    d = about[0].get("d") or "d"
+    ns = sorted({x.get("n") for x in about} - {None})
     p, B, G, Gmin = np.array(sorted(rows)).T
     plt = pyplot()
     fig, ax = plt.subplots(1, 2, figsize=(9.5, 3.8))
@@ -160,10 +179,14 @@ def moduli_files_figure(paths_h5, path):
     if np.any(Gmin <= 0):
         ax[0].set_title(f"{int(np.sum(Gmin <= 0))} state(s) unstable to some shear (G_min <= 0)",
                         fontsize=8)
-    for a, name in zip(ax, ("modulus", "G / B")):
-        a.set(xscale="log", yscale="log", xlabel="pressure p", ylabel=name)
+    for a, name in zip(ax, (axis("modulus", "modulus", d), "G / B")):
+        a.set(xscale="log", yscale="log", xlabel=axis("pressure $p$", "pressure", d),
+              ylabel=name)
         if a.get_legend_handles_labels()[0]:
             a.legend(fontsize=LEGEND_FONTSIZE)
+    fig.suptitle(title(ns[0] if len(ns) == 1 else None, d if d != "d" else None,
+                       f"{len(rows)} states", what="moduli by linear response"), fontsize=10)
+    readable_log_ticks(fig)
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)

@@ -22,6 +22,7 @@ import numpy as np
 from parjam.files import inputs, outputs
 from parjam.errors import ParjamError
 from parjam.plot import DPI, LEGEND_FONTSIZE, atomic_png, pyplot
+from parjam.plot.labels import axis, readable_log_ticks, state_text, title
 from parjam.study.fits import bootstrap, fit_eq33, fit_power, law, log_slope
 from parjam.study.summary import read_summary
 
@@ -125,6 +126,39 @@ FIG1_STATES = ["dphi1.0e-01", "dphi1.0e-02", "dphi1.0e-03", "dphi1.0e-04", "dphi
 COMPARE_STATES = ["dphi1.0e-01", "dphi1.0e-02", "dphi1.0e-03"]
 
 
+def who(s):
+    """N, d and the members of a system (a summary's attributes), for titles and legends."""
+    a = s["attrs"]
+    return title(a.get("n"), a.get("d"), None, a.get("members"))
+
+
+def span(labs):
+    """The states a figure draws, as a range: ``dphi = 1e-05 .. 1e-01``."""
+    vals = sorted(value(lab) for lab in labs)
+    if not vals:
+        return ""
+    name = r"$\delta\phi$" if labs[0].startswith("dphi") else "p"
+    return f"{name} = {vals[0]:.0e}" + (f" .. {vals[-1]:.0e}" if len(vals) > 1 else "")
+
+
+def everyone(systems):
+    """The second title line of a figure drawing several systems: each one's N, d, members."""
+    return "; ".join(who(s) for s in systems.values())
+
+
+def single(ax, heading, systems):
+    """Title (the law and its states, then the systems) and legend of a one-panel figure whose
+    points lie along a rising diagonal: the legend goes to the upper left."""
+    ax.set_title(f"{heading}\n{everyone(systems)}", fontsize=9)
+    ax.legend(fontsize=LEGEND_FONTSIZE - 1, loc="upper left")
+
+
+def common_d(systems):
+    """The dimension of every system drawn, or "d" when they mix."""
+    dims = {int(s["attrs"]["d"]) for s in systems.values()}
+    return dims.pop() if len(dims) == 1 else "d"
+
+
 def _panels(plt, systems):
     fig, axes = plt.subplots(1, len(systems), figsize=(4.6 * len(systems), 3.4), squeeze=False)
     return fig, axes[0]
@@ -164,7 +198,9 @@ def fig1(plt, systems, fits):
                 ax.fill_between(dos["omega"], dos["density"] - dos["density_error"],
                                 dos["density"] + dos["density_error"], color=f"C{k}",
                                 alpha=0.25, lw=0)
-        ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}, full matrix\n{src}")
+        ax.set(xlabel=axis(r"$\omega$", "frequency"), ylabel=axis(r"$D(\omega)$", "dos"),
+               title=f"{name}, full matrix, {src}\n{who(s)}")
+        ax.title.set_fontsize(9)
         ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
@@ -226,7 +262,9 @@ def compare(plt, systems, fits):
                 d = pooled_dos(s, lab, matrix, edges)
                 ax.semilogy(c[d > 0], d[d > 0], ls, color=f"C{k}", lw=1.1,
                             label=f"{matrix} {value(lab):.0e}")
-        ax.set(xlabel=r"$\omega$", ylabel=r"$D(\omega)$", title=f"{name}: full (-) vs relaxed (--)")
+        ax.set(xlabel=axis(r"$\omega$", "frequency"), ylabel=axis(r"$D(\omega)$", "dos"),
+               title=f"{name}: full (-) vs relaxed (--)\n{who(s)}")
+        ax.title.set_fontsize(9)
         ax.legend(fontsize=LEGEND_FONTSIZE, ncol=2)
     return fig
 
@@ -273,9 +311,9 @@ def sans(plt, systems, fits):
         x = np.geomspace(np.nanmin(dz[dz > 0]), np.nanmax(dz), 20)
         ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
                   label=f"{name}: slope {law(f)}")
-    ax.set(xlabel=r"dz_iso $= z - z_{iso}$", ylabel=r"$\omega^*$ (relaxed)",
-           title=r"$\omega^* \sim$ dz_iso")
-    ax.legend(fontsize=LEGEND_FONTSIZE)
+    labs = sorted({lab for s in systems.values() for lab in _sans_states(s)}, key=value)
+    ax.set(xlabel=r"dz_iso $= z - z_{iso}$", ylabel=axis(r"$\omega^*$ (relaxed)", "frequency"))
+    single(ax, r"$\omega^* \sim$ dz_iso, " + span(labs), systems)
     return fig
 
 
@@ -347,10 +385,11 @@ def trans(plt, systems, fits):
         ax.loglog(x, np.exp(a) * x**2, "k--", lw=0.8, label=r"$\propto\omega^2$")
         if not complete:
             ax.axvspan(*rng, color="0.9", zorder=0)
-        ax.set(xlabel=r"$\omega$", ylabel="sum per mode",
-               title=rf"{name}, $\delta\phi$ = {value(lab):.0e}"
+        ax.set(xlabel=axis(r"$\omega$", "frequency"), ylabel="sum per mode",
+               title=rf"{name}, $\delta\phi$ = {value(lab):.0e}, {who(s)}"
                + ("" if complete else f"\nlowest {len(w) // len(np.unique(member))} modes "
                                       f"per member"))
+        ax.title.set_fontsize(9)
         ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
@@ -397,9 +436,10 @@ def eq33(plt, systems, fits):
                   label=f"{name}: A1 = {f['A1']:.3g}, A2 = {f['A2']:.3g}")
     lim = ax.get_xlim()
     ax.loglog(lim, lim, "k--", lw=0.8)
-    ax.set(xlabel=r"$A_1$ dz_iso$^2 - A_2 p$", ylabel=r"$\omega_{AM}^2$",
-           title="Eq. (33), full system")
-    ax.legend(fontsize=LEGEND_FONTSIZE)
+    labs = sorted({lab for s in systems.values() for lab in _eq33_states(s)}, key=value)
+    ax.set(xlabel=axis(r"$A_1$ dz_iso$^2 - A_2 p$", "eigenvalue"),
+           ylabel=axis(r"$\omega_{AM}^2$", "eigenvalue"))
+    single(ax, "Eq. (33), full system, " + span(labs), systems)
     return fig
 
 
@@ -428,11 +468,11 @@ def diag(plt, systems, fits):
             line = np.sqrt(e33["A2"] / e33["A1"] * x)
             ax.fill_between(x, 1e-6, line, color=f"C{k}", alpha=0.12)
             ax.loglog(x, line, ":", color=f"C{k}", lw=1,
-                      label=rf"{name}: unstable below $\sqrt{{A_2 p/A_1}}$")
-    ax.set(xlabel="p", ylabel=r"dz_iso $= z - z_{iso}$",
-           title=r"dz_iso $= C_0\, p^{1/2}$ (Eq. 22)")
+                      label=r"unstable below $\sqrt{A_2 p/A_1}$")
+    labs = sorted({lab for s in systems.values() for lab in _diag_states(s)}, key=value)
+    ax.set(xlabel=axis("$p$", "pressure", common_d(systems)), ylabel=r"dz_iso $= z - z_{iso}$")
     ax.set_ylim(bottom=max(ax.get_ylim()[0], 1e-3))
-    ax.legend(fontsize=LEGEND_FONTSIZE)
+    single(ax, r"dz_iso $= C_0\, p^{1/2}$ (Eq. 22), " + span(labs), systems)
     return fig
 
 
@@ -447,33 +487,60 @@ def _fluct_ok(s):
 
 
 def fluct(plt, systems, fits):
-    """Variance of the contact number in sub-boxes of side l, against l^d (Gaussian: std
-    ~ l^(d/2)) and l^(2(d-1)) (surface: std ~ l^(d-1))."""
+    """Variance of the contact number in sub-boxes of side l = L/m, against l^d (Gaussian: std
+    ~ l^(d/2)) and l^(2(d-1)) (surface: std ~ l^(d-1)): one point per sub-box size m >= 2 (the
+    member mean; m = 1 is the whole box, variance 0), the x axis labelled at those sizes.  A
+    small N allows one size only (l = L/m must stay above two diameters): then no slope, and
+    the reference lines are left out."""
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullFormatter
+
     fig, axes = _panels(plt, systems)
     for ax, (name, s) in zip(axes, systems.items()):
         d = int(s["attrs"]["d"])
-        for k, lab in enumerate(_fluct_states(s)):
+        by_m = {}  # sub-box index m - 2 -> its side in every state (L differs a little)
+        labs = _fluct_states(s)
+        for k, lab in enumerate(labs):
             g = s[lab]["fluctuations"]
-            l = g["l"][0][1:]  # m >= 2: sub-boxes (m = 1 is the whole box, variance 0)
-            std_c = np.sqrt(g["var_contacts"][:, 1:].mean(axis=0))
-            std_x = np.sqrt(g["var_excess"][:, 1:].mean(axis=0))
-            ax.loglog(l, std_c, "o-", color=f"C{k}", ms=3, label=f"{lab}: contacts")
-            ax.loglog(l, std_x, "s--", color=f"C{k}", ms=3, label=f"{lab}: excess")
+            l = np.nanmean(np.atleast_2d(g["l"])[:, 1:], axis=0)
+            std_c = np.sqrt(np.nanmean(np.atleast_2d(g["var_contacts"])[:, 1:], axis=0))
+            std_x = np.sqrt(np.nanmean(np.atleast_2d(g["var_excess"])[:, 1:], axis=0))
+            for j, side in enumerate(l):
+                by_m.setdefault(j, []).append(side)
+            ax.loglog(l, std_c, "o-", color=f"C{k}", ms=4, label=state_text(lab))
+            ax.loglog(l, std_x, "s--", color=f"C{k}", ms=4, mfc="none")
             if len(l) > 1:
                 fits[f"fluct/{name}/{lab}"] = {
                     "std_contacts_exponent": float(log_slope(l, std_c)[0]),
                     "std_excess_exponent": float(log_slope(l, std_x)[0]),
                     "gaussian": d / 2, "surface": d - 1}
-        ref = np.array([l.min(), l.max()])
-        ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d / 2), "k:", label=f"l^{d / 2:g}")
-        ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d - 1), "k-.", label=f"l^{d - 1}")
-        ax.set(xlabel="l", ylabel="std in a sub-box", title=name)
-        ax.legend(fontsize=LEGEND_FONTSIZE)
+        sizes = np.array([np.mean(by_m[j]) for j in sorted(by_m)])
+        if len(sizes) > 1:
+            ref = np.array([sizes.min(), sizes.max()])
+            if d / 2 == d - 1:  # 2D: the Gaussian and the surface law coincide
+                ax.loglog(ref, std_c[0] * (ref / ref[0]), "k:", label="~ l (Gaussian = surface)")
+            else:
+                ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d / 2), "k:",
+                          label=f"~ l^{d / 2:g} (Gaussian)")
+                ax.loglog(ref, std_c[0] * (ref / ref[0]) ** (d - 1), "k-.",
+                          label=f"~ l^{d - 1} (surface)")
+        ax.set_xlim(sizes.min() / 1.25, sizes.max() * 1.25)
+        ax.xaxis.set_major_locator(FixedLocator(sizes))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.2f}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set(xlabel=axis("sub-box side l = L/m", "length"),
+               ylabel="std of the count in a sub-box",
+               title=f"{name}: contacts (o), excess (s)\n{who(s)}"
+               + ("" if len(sizes) > 1 else ", one sub-box size at this N"))
+        ax.title.set_fontsize(9)
+        ax.legend(fontsize=LEGEND_FONTSIZE - 1, loc="best", framealpha=0.6)
     return fig
 
 
 def _by_size(systems):
     return sorted(systems.items(), key=lambda t: t[1]["attrs"]["n"])
+
+
+HERTZ_UNITS = {"dz_iso": None, "omega_star": "frequency", "D0": "dos"}
 
 
 def hertz(plt, systems, fits):
@@ -491,8 +558,10 @@ def hertz(plt, systems, fits):
             ax.loglog(p.ravel(), y.ravel(), "o", ms=3, alpha=0.6, color=f"C{k}")
             x = np.geomspace(p.min(), p.max(), 20)
             ax.loglog(x, f["prefactor"] * x ** f["exponent"], "-", color=f"C{k}",
-                      label=f"N = {s['attrs']['n']}: {law(f)} (theory {theory:.3g})")
-            ax.set(xlabel="p", ylabel=key, title=f"Hertz, alpha = 5/2: {key}")
+                      label=f"{who(s)}: {law(f)} (theory {theory:.3g})")
+            ax.set(xlabel=axis("$p$", "pressure", s["attrs"]["d"]),
+                   ylabel=axis(key, HERTZ_UNITS[key]) if HERTZ_UNITS[key] else key,
+                   title=f"Hertz, alpha = 5/2: {key}, " + span(labs))
             ax.legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
@@ -505,7 +574,7 @@ def softmodes(plt, systems, fits):
         g = s["phi_c"]["softmodes"]
         ov = g["overlap"]  # members x bins x 3
         x, f = ov[0, :, 0], ov[:, :, 1].mean(axis=0)
-        axes[0].plot(x, f, "-o", ms=3, label=f"N = {s['attrs']['n']}")
+        axes[0].plot(x, f, "-o", ms=3, label=f"{who(s)}, c = min f = {np.mean(g['c']):.2f}")
         c = g["c"]
         fits[f"softmodes/{name}"] = {"c_mean": float(np.mean(c)),
                                      "c_err": float(np.std(c) / np.sqrt(len(c))),
@@ -519,7 +588,7 @@ def softmodes(plt, systems, fits):
         emean.append(np.nanmean(te[g["extension"] > 0.1]))
         emax.append(np.nanmean(g["trial_energy_max"]))
         wl2.append(np.mean(g["omega_L2"]))
-    axes[0].set(xlabel="x / L", ylabel="f(x)", title="overlap function, cut cube")
+    axes[0].set(xlabel="x / L", ylabel="f(x) L", title=r"overlap function, cut cube, $\phi_c$")
     axes[0].legend(fontsize=LEGEND_FONTSIZE)
     Ls = np.array(Ls)
     axes[1].loglog(Ls, emean, "o-", label=r"mean $\langle\delta R^*|M|\delta R^*\rangle$ (e > 0.1)")
@@ -531,7 +600,8 @@ def softmodes(plt, systems, fits):
         X = np.array([s["phi_c"]["softmodes"]["L"][:m] for s in ordered]).T
         Y = np.array([s["phi_c"]["softmodes"]["omega_t2"][:m] for s in ordered]).T
         fits["softmodes/trial_energy_vs_L"] = {**fit_power(X, Y), "theory": -2.0}
-    axes[1].set(xlabel="L", ylabel="energy", title="trial modes vs $\\omega_L^2$")
+    axes[1].set(xlabel=axis("L", "length"), ylabel=axis("energy", "stiffness"),
+                title=r"trial modes vs $\omega_L^2$, $\phi_c$")
     axes[1].legend(fontsize=LEGEND_FONTSIZE)
     return fig
 
@@ -594,6 +664,7 @@ def available(groups, names=None):
 
 def save(plt, fig, path):
     """tight layout, PNG at DPI through a temporary name (no partial file), figure closed."""
+    readable_log_ticks(fig)
     with atomic_png(path) as tmp:
         fig.tight_layout()
         fig.savefig(tmp, dpi=DPI, format="png")

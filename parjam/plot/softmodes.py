@@ -13,6 +13,7 @@ from parjam import env
 from parjam.files import h5md
 from parjam import softmodes as sm
 from parjam.plot import DPI, LEGEND_FONTSIZE, pyplot
+from parjam.plot.labels import describe, readable_log_ticks, title
 
 
 def crossing_height(pos_i, rij, L, plane):
@@ -87,6 +88,7 @@ def _bonds(ax, pos, c, **kw):
 
 def _save(plt, fig, path, colors=64):
     """PNG at DPI, palette-quantised when Pillow is there (the docs keep small images)."""
+    readable_log_ticks(fig)
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
@@ -99,13 +101,13 @@ def _save(plt, fig, path, colors=64):
     small.save(path, optimize=True)
 
 
-def _frame(ax, L, title):
+def _frame(ax, L, heading):
     ax.set_xlim(0, L)
     ax.set_ylim(0, L)
     ax.set_aspect("equal")
     ax.set_xticks([])
     ax.set_yticks([])
-    ax.set_title(title, fontsize=9)
+    ax.set_title(heading, fontsize=9)
 
 
 def softfig(pack, path, ncut=20, comm=None):
@@ -125,11 +127,18 @@ def softfig(pack, path, ncut=20, comm=None):
     ax.quiver(cs.pos[:, 0], cs.pos[:, 1], u[:, 0] * scale, u[:, 1] * scale, angles="xy",
               scale_units="xy", scale=1.0, width=0.0018, headwidth=4, color="navy", zorder=2)
     _bonds(ax, whole.pos, whole.cut, colors="red", linewidths=3.0, zorder=3)
-    _frame(ax, pack.L, f"N = {pack.n}: {ncut} contacts cut (red) along x = L/2; "
+    _frame(ax, pack.L, f"{_state(pack)}: {ncut} contacts cut (red) along x = L/2; "
            f"{count - cs.d} soft modes besides the {cs.d} translations;\n"
            f"the most extended one (e = {ext:.2f}) as arrows")
     _save(plt, fig, path)
     return {"count": count, "q": ncut, "extension": ext}
+
+
+def _state(pack):
+    """N, d and the state of a packing (its label when its file gave one, else phi)."""
+    label = pack.meta.get("state")
+    label = label.decode() if isinstance(label, bytes) else label
+    return title(pack.n, pack.d, label or f"phi = {pack.phi:.4f}")
 
 
 def figs(pack, path, x0=0.5, m=2):
@@ -150,15 +159,16 @@ def figs(pack, path, x0=0.5, m=2):
         for p in planes:
             line = ax.axvline if p.axis == 0 else ax.axhline
             line(p.frac * pack.L, color="C0", ls="--", lw=1.0)
-        title = (f"plane x = {x0:g} L (zoom): q = {cs.q} contacts cut (red);\n"
+        heading = (f"plane x = {x0:g} L (zoom): q = {cs.q} contacts cut (red);\n"
                  f"orange: left with < d contacts ({cs.localised} localised modes)"
                  if zoom else f"{m}$^{pack.d}$ sub-boxes: q = {cs.q} contacts cut;\n"
                  "bonds wrapping across the box edge count at the planes at 0")
-        _frame(ax, pack.L, title)
+        _frame(ax, pack.L, heading)
         if zoom:
             w = 0.2 * pack.L
             ax.set_xlim(x0 * pack.L - w, x0 * pack.L + w)
             ax.set_ylim(0.5 * pack.L - w, 0.5 * pack.L + w)
+    fig.suptitle(_state(pack), fontsize=10)
     _save(plt, fig, path)
 
 
@@ -177,15 +187,19 @@ def overlap_figure(path_h5, path):
     fig, ax = plt.subplots(1, 2, figsize=(9.5, 3.6))
     ax[0].plot(ov[:, 0], ov[:, 1], "-o", ms=3, label="f(x)")
     ax[0].plot(ov[:, 0], ov[:, 2], "--s", ms=3, label="f(x), localised modes projected out")
-    ax[0].axhline(c, color="k", ls=":", lw=0.8, label=f"c = {c:.3f} ({cn:.3f})")
-    ax[0].set(xlabel=f"{axis} / L from the first plane", ylabel="f(x)",
-              title=f"overlap function, cut {planes} (q = {q})")
+    ax[0].axhline(c, color="k", ls=":", lw=0.8,
+                  label=f"c = min f(x) = {c:.3f}; {cn:.3f} with the localised modes out")
+    ax[0].set(xlabel=f"{axis} / L from the first plane", ylabel="f(x) L (integral 1)",
+              title=f"overlap function, cut {planes} (q = {q} contacts)")
     ax[0].legend(fontsize=LEGEND_FONTSIZE)
     ax[1].semilogy(np.arange(1, len(ext) + 1), np.maximum(ext, 1e-16), ".", ms=3)
     ax[1].axhline(e0, color="k", ls="--", lw=0.8,
                   label=f"e0 = {e0:g}: q' = {int(np.sum(ext > e0))} of {len(ext)}")
     ax[1].set(xlabel="soft mode (by extension)", ylabel="extension e", title="extension")
     ax[1].legend(fontsize=LEGEND_FONTSIZE)
+    about = describe(path_h5)
+    fig.suptitle(title(about.get("n"), about.get("d"), about.get("state"),
+                       what="soft modes of a cut packing"), fontsize=10)
     _save(plt, fig, path)
 
 
@@ -217,8 +231,8 @@ def fx_vs_n_figure(results, path):
             s = per[n]
             x, f, err = (np.asarray(s[key], float) for key in ("x", "f", "f_err"))
             col = cmap(j / max(len(ns) - 1, 1))
-            a.plot(x, f, "-o", ms=3, color=col, label=f"N = {n} ({s['members']}), c = "
-                   f"{s['c']:.2f}")
+            a.plot(x, f, "-o", ms=3, color=col, label=f"N = {n} ({s['members']} members), "
+                   f"c = min f = {s['c']:.2f}")
             a.fill_between(x, f - np.nan_to_num(err), f + np.nan_to_num(err), color=col,
                            alpha=0.25, lw=0)
         a.axhline(1.0, color="0.5", lw=0.6, ls=":")

@@ -12,6 +12,7 @@ import numpy as np
 
 from parjam import faults
 from parjam.errors import UnjammedError
+from parjam.progress import member as member_name
 from parjam.files import checkpoint, h5md, manifest, outputs, rowio
 from parjam.pack import filestart, staterows
 from parjam.pack.ensemble import (member_states, quality_checks, stability_observables,
@@ -88,9 +89,10 @@ def pack_member(args, member, comm, progress, run_params=None):
         }
         path = file_name(args.out, member, st)
         prov = h5md.provenance(comm.tompi4py().Get_size(), {"world_ranks": _world_size()})
-        extra = quality_checks(st.rows, net, f"member {member} {st.label}",
+        extra = quality_checks(st.rows, net, f"{member_name(member)} {st.label}",
                                st.phi - st.info.get("phi_c", np.nan), hexatic, speak=root)
-        extra.update(stability_observables(st, f"member {member} {st.label}", speak=root))
+        extra.update(stability_observables(st, f"{member_name(member)} {st.label}",
+                                           speak=root))
         # by row blocks (parjam.files.rowio, collective): no rank holds all N; a failed write (a full
         # disk) ends every rank of the group with the same line, not an MPI abort
         write_state(path, st.rows, net, params, prov, extra)
@@ -103,7 +105,7 @@ def pack_member(args, member, comm, progress, run_params=None):
     if stopped is not None:
         # the jammed states are written, but the member is not finished: no manifest record
         # (a rerun recomputes it, from its checkpoint if any) and an UnjammedError (exit 3)
-        raise MemberIncomplete(f"member {member}: {stopped}; its {len(states)} jammed "
+        raise MemberIncomplete(f"{member_name(member)}: {stopped}; its {len(states)} jammed "
                                f"state(s) before that step are written "
                                f"(ladder_unjammed_at = {stopped.step:.1e} in /observables)",
                                rows, member, stopped.step, len(states))
@@ -145,15 +147,25 @@ def _world_size():
     return MPI.COMM_WORLD.Get_size()
 
 
-def print_table(rows):
+def print_table(rows, d="d"):
+    """The states of every member, one row each (members counted from 1, as every message
+    counts them: member 1's files are member0000_*), with a row of units under the header
+    (parjam.units: reduced units, d the dimension).  ``dphi`` is phi - phi_c of the state: the
+    row of the state named phi_c (the bisection's last jammed state) shows how far above the
+    refined phi_c it lies, so that no label contradicts the numbers beside it."""
+    from parjam import units
+
     rows = sorted(rows, key=lambda r: (r["member"], r["phi"]))
-    head = (f"{'member':>6} {'state':>12} {'phi_c':>14} {'phi':>14} {'N_act':>6} {'Nc-iso':>6} "
-            f"{'z':>8} {'dz':>10} {'p':>11} {'max|F|':>9} {'|F|rel':>9}")
+    head = (f"{'member':>6} {'state':>12} {'phi_c':>14} {'phi':>14} {'dphi':>9} {'N_act':>6} "
+            f"{'Nc-iso':>6} {'z':>8} {'dz':>10} {'p':>15} {'max|F|':>11} {'|F|rel':>9}")
     print(head)
+    print(f"{'':>6} {'':>12} {'':>14} {'':>14} {'':>9} {'':>6} {'':>6} {'':>8} {'':>10} "
+          f"{units.text('pressure', d):>15} {units.text('force'):>11} {'':>9}")
     for r in rows:
-        print(f"{r['member']:>6} {r['state']:>12} {r['phi_c']:>14.10f} {r['phi']:>14.10f} "
-              f"{r['N_active']:>6} {r['excess']:>6} {r['z']:>8.4f} {r['dz']:>10.3e} "
-              f"{r['pressure']:>11.4e} {r['max_force']:>9.2e} {r['max_force_rel']:>9.2e}")
+        print(f"{r['member'] + 1:>6} {r['state']:>12} {r['phi_c']:>14.10f} {r['phi']:>14.10f} "
+              f"{r['phi'] - r['phi_c']:>9.2e} {r['N_active']:>6} {r['excess']:>6} "
+              f"{r['z']:>8.4f} {r['dz']:>10.3e} {r['pressure']:>15.4e} {r['max_force']:>11.2e} "
+              f"{r['max_force_rel']:>9.2e}")
     print(stability_line(rows))
     line = label_line(rows)
     if line:
@@ -168,7 +180,7 @@ def stopped_line(stopped, members):
     steps = sorted({step for _, step, _ in stopped})
     at = ", ".join(f"{s:.0e}" for s in steps)
     written = sum(n for _, _, n in stopped)
-    names = ", ".join(f"{m} ({s:.0e})" for m, s, _ in sorted(stopped))
+    names = ", ".join(f"{m + 1} ({s:.0e})" for m, s, _ in sorted(stopped))
     return (f"stopped: {len(stopped)} of {members} member(s) stopped at dphi = {at} (unjammed "
             f"even in smaller steps; {written} state(s) written, the later steps not made): "
             f"member {names}")
@@ -181,7 +193,7 @@ def stability_line(rows):
     if not bad:
         return f"stability: all {len(rows)} states are stable minima (Nc >= Nc_iso)"
     return (f"stability: {len(bad)} of {len(rows)} states in {len(members)} member(s) are NOT "
-            f"stable minima (flagged stable = 0): " + ", ".join(f"{m} {s}" for m, s in bad))
+            f"stable minima (flagged stable = 0): " + ", ".join(f"{m + 1} {s}" for m, s in bad))
 
 
 def label_line(rows):
@@ -192,4 +204,4 @@ def label_line(rows):
         return None
     return (f"labels: {len(bad)} state(s) re-jammed at another phi_c on the way (their own "
             f"virial dphi is off their label; dphi_virial_ok = 0): "
-            + ", ".join(f"{m} {s}" for m, s in bad))
+            + ", ".join(f"{m + 1} {s}" for m, s in bad))

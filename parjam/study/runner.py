@@ -20,6 +20,7 @@ from parjam.files import h5md, inputs, manifest, outputs, rowio, stagefile
 from parjam.study import members
 from parjam.errors import ParjamError, UnjammedError
 from parjam.net.fluctuations import contact_fluctuations
+from parjam.progress import member
 from parjam.ranks import member_groups
 from parjam.study.records import moduli_record, network_record, softmodes_record, spectrum_record
 from parjam.study.summary import summary_table, write_summary
@@ -91,7 +92,7 @@ class Runner:
         return os.path.isfile(self.part_path(st, m))
 
     def log(self, st, m):
-        self.append_log(f"computed {st.name} member {m}")
+        self.append_log(f"computed {st.name} {member(m)}")
 
     def append_log(self, text):
         """One timestamped line appended to OUT/stage.log (a failed write is one line)."""
@@ -154,21 +155,21 @@ class Runner:
             self.counts[st.kind] += 1
             if gm.Get_rank() == 0:
                 self.log(st, m)
-            group_progress(f"{label}: member {m} of {self.scene.members} in "
+            group_progress(f"{label}: {member(m, self.scene.members)} in "
                            f"{time.time() - t0:.1f} s")
         return False
 
     def compute_member(self, st, m, comm):
         if st.kind == "pack":
             protocol = self.scene.packing_protocol(st.system, self.stage_dir(st))
-            sub = self.progress.sub(f"pack {st.system.name} member {m}: ")
+            sub = self.progress.sub(f"pack {st.system.name} {member(m)}: ")
             sub.enabled = False  # the bisection's lines would drown the stage progress
             try:
                 members.pack_member(protocol, m, comm, sub)
             except UnjammedError as exc:  # rare: the member is left out, the ensemble goes on
                 if comm.getRank() == 0:
                     outputs.write_bytes(self.failed_path(st.system, m), f"{exc}\n".encode())
-                    print(f"parjam: warning: {st.system.name} member {m}: {exc}; left out",
+                    print(f"parjam: warning: {st.system.name} {member(m)}: {exc}; left out",
                           file=sys.stderr, flush=True)
             return
         data = {}
@@ -182,7 +183,7 @@ class Runner:
                 # leave the other groups waiting for this one)
                 data[label] = {"failed": str(exc)}
                 if comm.getRank() == 0:
-                    print(f"parjam: warning: {st.kind} {st.system.name} member {m} {label}: "
+                    print(f"parjam: warning: {st.kind} {st.system.name} {member(m)} {label}: "
                           f"{exc}; recorded as missing", file=sys.stderr, flush=True)
         if comm.getRank() == 0:
             stagefile.write_part(self.part_path(st, m), data,

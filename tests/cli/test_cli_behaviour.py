@@ -77,16 +77,16 @@ def test_progress_of_every_member_on_every_rank_group(tmp_path):
               "--dphi", "1e-3", "--out", "o", "--seed", "3"], tmp_path, mpi=2)
     assert r.returncode == 0, r.stderr
     done = sorted(re.findall(r"member (\d+) of 2: done in", r.stderr))
-    assert done == ["0", "1"]  # member 1 ran on rank 1's group
+    assert done == ["1", "2"]  # member 2 ran on rank 1's group (members counted from 1)
     # the table's rows (the stability line under it is not a row)
     table = [ln.split()[0] for ln in r.stdout.splitlines()[1:] if ln.split()[0].isdigit()]
-    assert sorted(set(table)) == ["0", "1"]  # the table numbers members the same way
+    assert sorted(set(table)) == ["1", "2"]  # the table numbers members the same way
 
 
 @pytest.mark.serial
 def test_run_progress_of_every_member_on_every_rank_group(tmp_path):
-    """parjam run on 2 ranks with 2 members: member 1 is computed by rank 1's group, and its
-    stage lines still reach world rank 0's log, numbered from 0 as in the results."""
+    """parjam run on 2 ranks with 2 members: member 2 is computed by rank 1's group, and its
+    stage lines still reach world rank 0's log, counted from 1 as in pack's messages."""
     (tmp_path / "s.toml").write_text(
         '[[system]]\nd = 2\nN = 16\ndispersity = "bi"\n[protocol]\ndphi = [1e-3]\n'
         '[ensemble]\nmembers = 2\nseed = 3\n[observables]\ncontacts = true\n')
@@ -94,4 +94,4 @@ def test_run_progress_of_every_member_on_every_rank_group(tmp_path):
     assert r.returncode == 0, r.stderr
     for stage in ("pack", "network"):
         done = sorted(re.findall(rf"run: {stage} \S+: member (\d+) of 2 in", r.stderr))
-        assert done == ["0", "1"], (stage, r.stderr)
+        assert done == ["1", "2"], (stage, r.stderr)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from parjam import cli, env
-from parjam.files import h5md
+from parjam.files import export, h5md
 from parjam.net.network import analyze
 from parjam.pack.packing import random_packing
 
@@ -40,7 +40,7 @@ def _import(args):
 def test_extxyz_round_trip(shared_dir):
     pack = _pack(3, 60, 0.6)
     xyz, out = os.path.join(shared_dir, "a.xyz"), os.path.join(shared_dir, "a.h5")
-    _on_rank0(h5md.write_extxyz, xyz, pack, analyze(pack))
+    _on_rank0(export.write_extxyz, xyz, pack, analyze(pack).rattler)
     assert _import([xyz, "--out", out]) == 0
     back = h5md.read_packing(out)
     assert np.array_equal(back.pos, pack.pos) and np.array_equal(back.diam, pack.diam)
@@ -146,6 +146,25 @@ BAD = {
     "twotypes.data": "header\n\n2 atoms\n0 4 xlo xhi\n0 4 ylo yhi\n0 4 zlo zhi\n\nAtoms # atomic\n\n"
                      "1 1 0 0 0\n2 2 2 2 2\n",
     "garbage.dump": "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\nmany\n",
+    # issue 36: no particles (a StopIteration traceback before), non-periodic or impossible
+    # extended XYZ headers, and 7 columns under a bare Atoms header (sphere or full?)
+    "zeroatoms.data": "header\n\n0 atoms\n0 4 xlo xhi\n0 4 ylo yhi\n0 4 zlo zhi\n\nAtoms\n\n",
+    "negatoms.data": "header\n\n-3 atoms\n0 4 xlo xhi\n0 4 ylo yhi\n0 4 zlo zhi\n\nAtoms\n\n"
+                     "1 1 0 0 0\n",
+    "barefull.data": "header\n\n2 atoms\n1 atom types\n0 4 xlo xhi\n0 4 ylo yhi\n0 4 zlo zhi\n"
+                     "\nAtoms\n\n1 1 1 0.0 0 0 0\n2 1 1 0.0 2 2 2\n",
+    "fixedz.data": "header\n\n2 atoms\n0 4 xlo xhi\n0 4 ylo yhi\n0 4 zlo zhi\npp pp ff\n\n"
+                   "Atoms # sphere\n\n1 1 1 1 0 0 0\n2 1 1 1 2 2 2\n",
+    "nopbc.xyz": "2\nLattice=\"4 0 0 0 4 0 0 0 4\" Properties=pos:R:3:radius:R:1 pbc=\"F F F\"\n"
+                 "0 0 0 0.5\n2 2 2 0.5\n",
+    "flatz.xyz": "2\nLattice=\"4 0 0 0 4 0 0 0 4\" Properties=pos:R:3:radius:R:1 pbc=\"T T F\"\n"
+                 "0 0 0 0.5\n2 2 2 0.5\n",
+    "dim7.xyz": "2\nLattice=\"4 0 0 0 4 0 0 0 4\" Properties=pos:R:3:radius:R:1 dimension=7\n"
+                "0 0 0 0.5\n2 2 2 0.5\n",
+    # 27 unit spheres on a cubic lattice in a box of 2.3: phi = 1.16 (the issue's 1.0037)
+    "dense.xyz": "27\nLattice=\"2.3 0 0 0 2.3 0 0 0 2.3\" Properties=pos:R:3:radius:R:1\n" + "".join(
+        f"{a * 2.3 / 3} {b * 2.3 / 3} {c * 2.3 / 3} 0.5\n" for a in range(3) for b in range(3)
+        for c in range(3)),
     "notreally.h5": "plain text\n",
     "unknown.pdb": "ATOM\n",
 }
@@ -169,6 +188,110 @@ def test_bad_foreign_files_one_line_errors(shared_dir, capsys):
             assert len(lines) == 1 and lines[0].startswith("parjam: error: "), (name, err)
             assert name in lines[0] and "Traceback" not in err
         assert not os.path.exists(out)
+
+
+REASONS = {"zeroatoms.data": "0 atoms: a packing needs particles",
+           "negatoms.data": "-3 atoms: a packing needs particles",
+           "barefull.data": "7 columns: full or sphere? name the style",
+           "fixedz.data": "boundaries pp pp ff; parjam needs a periodic box",
+           "nopbc.xyz": "not periodic along x and y",
+           "flatz.xyz": "not periodic along z",
+           "dim7.xyz": "dimension=7: parjam packings are 2D or 3D",
+           "dense.xyz": "phi = 0.0"}
+
+
+def test_issue36_importer_cases_say_why(tmp_path):
+    """Each hostile file of issue 36 is refused with its reason (the bare full-style header used
+    to be read as sphere, pbc="F F F" as a 2D packing, dimension=7 accepted).  The reader itself,
+    each rank on its own file."""
+    from parjam.errors import ParjamError
+    from parjam.files import importer
+
+    for name, why in REASONS.items():
+        path = tmp_path / f"r{MPI.Get_rank()}-{name}"
+        path.write_text(BAD[name])
+        with pytest.raises(ParjamError) as exc:
+            importer.load(str(path))
+        if name == "dense.xyz":
+            assert "phi = 1.16193 lies outside [0.05, 1) in 3D" in str(exc.value)
+            assert "`parjam pack --from` starts only from that range" in str(exc.value)
+        else:
+            assert why in str(exc.value), (name, str(exc.value))
+
+
+def test_import_and_pack_from_refuse_the_same_volume_fraction(shared_dir, capsys):
+    """phi = 27 (pi/6) / 2.3^3 = 1.162: `import` refuses it (it used to write it with a note)
+    and `pack --from` refuses the same configuration written by parjam itself."""
+    from parjam.net.system import Packing
+
+    xyz = os.path.join(shared_dir, "dense.xyz")
+    h5 = os.path.join(shared_dir, "dense.h5")
+    out = os.path.join(shared_dir, "dense.out.h5")
+
+    def write():
+        with open(xyz, "w") as fh:
+            fh.write(BAD["dense.xyz"])
+        rows = np.array([[float(w) for w in ln.split()[:3]]
+                         for ln in BAD["dense.xyz"].splitlines()[2:]])
+        pack = Packing(rows, np.ones(27), 2.3)
+        h5md.write_packing(h5, pack, analyze(pack), {})
+
+    _on_rank0(write)
+    capsys.readouterr()
+    assert _import([xyz, "--out", out]) == 2 and not os.path.exists(out)
+    first = capsys.readouterr().err
+    assert cli.main(["pack", "--from", h5, "--dphi", "1e-3", "--out",
+                     os.path.join(shared_dir, "packs")]) == 2
+    second = capsys.readouterr().err
+    if MPI.Get_rank() == 0:
+        assert "phi = 1.16193 lies outside [0.05, 1)" in first
+        assert "volume fraction 1.16192709" in second and "out of range" in second
+
+
+def test_bare_atoms_header_read_with_the_style_named(tmp_path):
+    """The ambiguous full-style rows read as full when the style is named: types from column 3,
+    positions from columns 5-7; read as sphere (as the old reader did silently) the molecule
+    id 7 would be the type, outside the header's 2 atom types: refused."""
+    from parjam.errors import ParjamError
+    from parjam.files import importer
+
+    path = tmp_path / f"r{MPI.Get_rank()}-full.data"
+    path.write_text("header\n\n2 atoms\n2 atom types\n0 3 xlo xhi\n0 3 ylo yhi\n0 3 zlo zhi"
+                    "\n\nAtoms\n\n1 7 2 0.5 0.5 0.5 0.5\n2 7 1 -0.5 2 2 2\n")
+    back = importer.load(str(path), diameters=[1.0, 1.4], atom_style="full")
+    assert np.array_equal(back.pos, [[0.5, 0.5, 0.5], [2, 2, 2]])
+    assert np.array_equal(back.meta["species"], [2, 1])
+    assert np.array_equal(back.diam, [1.4, 1.0])
+    with pytest.raises(ParjamError, match=r"Atoms # sphere: types \(column 2\) must lie in 1 .. 2"):
+        importer.load(str(path), atom_style="sphere")
+
+
+def test_h5md_box_edges_as_a_matrix(tmp_path):
+    """H5MD allows the box edges as a (D, D) matrix: read when diagonal (fixed or a time series),
+    refused when not (it was read as the last row, [0, 0, L])."""
+    from parjam.errors import ParjamError
+    from parjam.files import importer
+
+    pack = _pack(3, 60, 0.6, seed=7)
+    for k, (edges, ok) in enumerate((
+            (np.eye(3) * pack.L, True), (np.array([np.eye(3) * pack.L] * 2), True),
+            (np.eye(3) * pack.L + np.triu(np.full((3, 3), 0.1), 1), False))):
+        path = tmp_path / f"r{MPI.Get_rank()}-{k}.h5"
+        with h5py.File(path, "w") as f:
+            g = f.create_group("particles/all")
+            g.create_group("box").attrs["boundary"] = np.array([b"periodic"] * 3)
+            if edges.ndim == 3:
+                g.create_dataset("box/edges/value", data=edges)
+            else:
+                g.create_dataset("box/edges", data=edges)
+            g.create_dataset("position", data=pack.pos)
+            g.create_dataset("diameter", data=pack.diam)
+        if ok:
+            back = importer.load(str(path))
+            assert back.L == pack.L and np.array_equal(back.pos, pack.pos)
+        else:
+            with pytest.raises(ParjamError, match="a triclinic box"):
+                importer.load(str(path))
 
 
 @pytest.mark.serial

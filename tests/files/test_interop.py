@@ -1,5 +1,5 @@
 """Files that other tools open: MDAnalysis reads parjam's packing and spectrum files (H5MD) and
-ASE reads `parjam export`'s extended XYZ; positions, box, species and radius are compared with
+ASE reads `parjam export`'s extended XYZ (every export and client: test_clients.py); positions, box, species and radius are compared with
 what h5py reads from the same files.  Older parjam files (plain box edges, scalar observables)
 still read.  MDAnalysis and ASE are installed by scripts/setup-env (ci/test-requirements.txt)."""
 
@@ -103,22 +103,24 @@ def test_mdanalysis_opens_a_spectrum_file(shared_dir):
 def test_ase_reads_exported_xyz_with_species_radius_rattlers(tmp_path, d):
     import ase.io
 
+    from parjam.files import export
+
     pack = (random_packing(2, 80, 0.8, 2.0, "bi", 1.4, np.random.default_rng(1)) if d == 2
             else _bidisperse_3d())
     net = analyze(pack)
-    h5 = str(tmp_path / "p.h5")
+    h5 = str(tmp_path / f"p{MPI.Get_rank()}.h5")
     h5md.write_packing(h5, pack, net, {})
     back = h5md.read_packing(h5)  # species must survive the file
-    xyz = str(tmp_path / "p.xyz")
-    h5md.write_extxyz(xyz, back, analyze(back))
+    xyz = str(tmp_path / f"p{MPI.Get_rank()}.xyz")
+    export.write_extxyz(xyz, back, analyze(back).rattler)
     pos, edges, diam, species = _h5(h5)
-    atoms = ase.io.read(xyz, format="extxyz")
+    atoms = ase.io.read(xyz, format="extxyz", parallel=False)
     assert len(atoms) == pack.n
     assert np.array_equal(atoms.positions[:, :d], pos)
     assert np.allclose(np.diag(atoms.cell)[:d], edges, rtol=1e-15)
     assert list(atoms.pbc) == [True, True, d == 3]
-    assert np.array_equal(atoms.arrays["type"], species)
-    assert set(atoms.arrays["type"]) == {0, 1}  # a bidisperse packing keeps its two species
+    assert np.array_equal(atoms.arrays["type"], species + 1)  # types count from 1
+    assert set(atoms.get_chemical_symbols()) == {"H", "He"}  # two species stay two (Z = type)
     assert np.array_equal(atoms.arrays["radius"], diam / 2)
     assert np.array_equal(atoms.arrays["rattler"], net.rattler.astype(int))
     assert atoms.info["phi"] == pytest.approx(pack.phi, rel=1e-15)
