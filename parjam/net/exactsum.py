@@ -132,7 +132,7 @@ NAN, PINF, MINF = 66, 67, 68  # counts of NaN, +inf, -inf
 ACC_LEN = 69  # int64 per accumulator (XACC_LEN)
 
 
-def _compiled():
+def compiled():
     """The compiled accumulator's library (parjam.pack.kernels), or None: the numpy fallback."""
     from parjam.pack import kernels  # the compiled library lives with the packing kernels
 
@@ -154,7 +154,7 @@ def partial(values, acc=None):
     ``acc`` if given, an int64 array of ACC_LEN)."""
     v = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
     acc = np.zeros(ACC_LEN, dtype=np.int64) if acc is None else acc
-    lib = _compiled()
+    lib = compiled()
     if lib is not None:
         lib.parjam_exact_add(len(v), v, 1, acc)
         return acc
@@ -181,7 +181,7 @@ def value(acc):
     """An accumulator's sum rounded to the nearest double, ties to even (NaN if a NaN or both
     infinities were added, else +-inf if one was)."""
     acc = np.ascontiguousarray(acc, dtype=np.int64)
-    lib = _compiled()
+    lib = compiled()
     if lib is not None:
         return float(lib.parjam_exact_value(acc))
     if acc[NAN] or (acc[PINF] and acc[MINF]):

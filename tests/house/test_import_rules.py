@@ -26,6 +26,7 @@ ALLOWED_IN_FILES = {
     ("parjam.net.system", "Packing"), ("parjam.net.system", "wrap"),
     ("parjam.net.system", "DUPLICATE_TOL"),
     ("parjam.net.system", "coinciding_pairs"),
+    ("parjam.net.system", "sphere_volume"),  # a particle's volume, for the exports' mass density
     ("parjam.net.active", "row_block"), ("parjam.net.active", "home_rows"),
     ("parjam.net.domain", "as_mpi"), ("parjam.net.domain", "blocks_in_turn"),
     ("parjam.pack.minimize", "FireState"), ("parjam.pack.minimize", "MinimiseState"),

@@ -49,8 +49,8 @@ def test_exact_sum_is_math_fsum(compiled, monkeypatch):
     """partial + value round the exact sum once, to nearest (ties to even): math.fsum's value,
     for the compiled accumulator and its numpy fallback (the same accumulator, bit for bit)."""
     if not compiled:
-        monkeypatch.setattr(exactsum, "_compiled", lambda: None)
-    elif exactsum._compiled() is None:
+        monkeypatch.setattr(exactsum, "compiled", lambda: None)
+    elif exactsum.compiled() is None:
         pytest.fail("the compiled kernels are not available (a C compiler is part of the setup)")
     rng = np.random.default_rng(7)
     for n in (1, 2, 7, 300, 5000):
