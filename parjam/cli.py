@@ -137,6 +137,13 @@ def rank_and_size():
 def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, petsc_args = split_petsc_args(argv)
+    # the parser first: --help, --version and a mistyped option end here, before MPI and PETSc
+    # start (the command modules load nothing heavy until a command runs)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(ours)
+    except SystemExit as exc:  # argparse already printed its help or its one-line usage error
+        return int(exc.code or 0)
     try:
         # options files, rc files, PETSC_OPTIONS and PETSc's output files, looked at before
         # PETSc reads them (a FIFO there blocks it, a self-including file crashes it)
@@ -151,11 +158,6 @@ def main(argv=None):
     quiet_closed_stdout()
     rank, size = rank_and_size()
     _outcome_comm()  # collective: made here, while every rank is sure to take part
-    parser = build_parser()
-    try:
-        args = parser.parse_args(ours)
-    except SystemExit as exc:  # argparse already printed its one-line usage error
-        return int(exc.code or 0)
     petsc_args = options.all_user_args(petsc_args)  # PETSC_OPTIONS: as the command line
     try:
         faults.point("command")  # PARJAM_FAULT testing hook (parjam/faults.py)

@@ -7,7 +7,7 @@ import numpy as np
 from parjam import units
 from parjam.commands import parse_pair
 from parjam.errors import ParjamError
-from parjam.vib.spectrum import MATRICES
+from parjam.vib.solver_choice import MATRICES
 
 
 def add_parser(sub):

@@ -8,7 +8,9 @@ from parjam.errors import ParjamError
 
 
 def add_parser(sub):
-    from parjam.files.export import ATOM_STYLES, EXTENSIONS, FORMATS
+    from parjam.files.formats import EXPORT_ATOM_STYLES as ATOM_STYLES
+    from parjam.files.formats import EXPORT_EXTENSIONS as EXTENSIONS
+    from parjam.files.formats import EXPORT_FORMATS as FORMATS
 
     p = sub.add_parser(
         "export", help="write a packing as extended XYZ, LAMMPS data or GSD",

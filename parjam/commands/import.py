@@ -9,7 +9,8 @@ from parjam.errors import ParjamError
 
 
 def add_parser(sub):
-    from parjam.files.importer import ATOM_STYLES, FORMATS
+    from parjam.files.formats import IMPORT_FORMATS as FORMATS
+    from parjam.files.lammpsio import STYLES as ATOM_STYLES
 
     p = sub.add_parser(
         "import", help="bring in a packing made elsewhere (extended XYZ, LAMMPS, GSD, H5MD)",

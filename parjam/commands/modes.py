@@ -5,14 +5,10 @@ import sys
 
 import numpy as np
 
-from parjam import env, units
-from parjam.files import h5md, modes_io, outputs, rowio
-from parjam.net import active
-from parjam.vib import observables, spectrum
+from parjam import units
 from parjam.commands import parse_pair
 from parjam.errors import ParjamError
-from parjam.plot import spectra as plot_spectra
-from parjam.progress import Progress
+from parjam.vib.solver_choice import MATRICES, METHODS
 
 EXIT_INCOMPLETE = 4  # some requested pairs did not converge to the tolerance
 MAX_BINS = 1_000_000  # bins cost memory linearly; 1e6 is finer than any spectrum needs
@@ -30,7 +26,7 @@ def add_parser(sub):
         "transverse and longitudinal sums; D(omega) per mode with D0 and omega*. SLEPc objects "
         "take options with the prefix modes_ (-modes_eps_view, -modes_st_mat_mumps_icntl_7 5).")
     p.add_argument("packing", help="packing file (H5MD, from parjam pack)")
-    p.add_argument("--matrix", nargs="+", default=["full"], choices=spectrum.MATRICES,
+    p.add_argument("--matrix", nargs="+", default=["full"], choices=MATRICES,
                    help="one or more matrices (default full); several give one file each, "
                    "OUT with .MATRIX before .h5, e.g. --matrix full relaxed for Fig. 'compare'")
     g = p.add_mutually_exclusive_group(required=True)
@@ -38,7 +34,7 @@ def add_parser(sub):
     g.add_argument("--window", help="frequency window WA,WB [tau^-1]: every mode with WA <= "
                    "omega <= WB (method auto: dense LAPACK up to 3000 degrees of freedom, "
                    "spectrum slicing above)")
-    p.add_argument("--method", default="auto", choices=spectrum.METHODS,
+    p.add_argument("--method", default="auto", choices=METHODS,
                    help="auto: --window: dense LAPACK up to 3000 dof, else slice; --k: "
                    "sinvert, or dense up to 3000 dof when N is tiny (<= 400 dof), k >= 15%% of "
                    "the modes or --tol < 1e-12 (measured crossovers, "
@@ -90,6 +86,8 @@ def option_conflicts(args):
     """One-line warnings for PETSc options that contradict the command line: -modes_eps_nev
     sets SLEPc's number of pairs after --k did (it used to end in exit 4 without a word), and
     -modes_eps_interval the slicing interval after --window did."""
+    from parjam import env
+
     opts = env.petsc().Options()
     out = []
     if args.k is not None and opts.hasName("modes_eps_nev"):
@@ -115,6 +113,13 @@ def summary_line(kind, spec, dos):
 
 
 def run(args):
+    # the work's modules load here, not when the command line is built (parjam --help)
+    from parjam import env
+    from parjam.files import h5md, outputs, rowio
+    from parjam.net import active
+    from parjam.progress import Progress
+    from parjam.vib import spectrum
+
     PETSc = env.petsc()
     comm = PETSc.COMM_WORLD
     rank = comm.getRank()
@@ -148,6 +153,9 @@ def run(args):
             code = EXIT_INCOMPLETE
     if args.plot:
         def draw():
+            from parjam.files import modes_io
+            from parjam.plot import spectra as plot_spectra
+
             with outputs.atomic_path(args.plot, ".png") as tmp:
                 plot_spectra.spectra_figure([modes_io.read_spectrum(p) for p in written.values()],
                                             tmp)
@@ -157,6 +165,8 @@ def run(args):
 
 
 def dos_or_none(spec, system, args):
+    from parjam.vib import observables
+
     if not np.any(spec.physical):  # zero modes (floppy) are no vibrations: not in D(omega)
         return None
     dos = observables.dos_record(spec.frequency[spec.physical], system.n_modes, args.bins,
@@ -183,6 +193,8 @@ def flag_undefined(dos, kind):
 def write(comm, path, spec, system, rows, dos, prov):
     empty = {"omega": np.zeros(0), "edges": np.zeros(0), "density": np.zeros(0),
              "note": "no positive frequency"}
+    from parjam.files import modes_io
+
     modes_io.write_spectrum(comm, path, spec, system, rows, dos or empty, prov)
 
 

@@ -9,9 +9,8 @@ import numpy as np
 
 from parjam.errors import ParjamError, UnjammedError
 from parjam.progress import member
-from parjam.pack.packing import DISPERSITIES
 from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DPHI, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
-                             DEFAULT_PHI_START, DEFAULT_RATIO, LADDERS, PHIC_METHODS,
+                                  DEFAULT_PHI_START, DISPERSITIES, DEFAULT_RATIO, LADDERS, PHIC_METHODS,
                              PackingProtocol, check_tolerances)
 from parjam.ranks import GroupFailures, member_groups
 

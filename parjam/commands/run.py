@@ -21,8 +21,6 @@ import os
 from parjam import env, resources
 from parjam.files import outputs
 from parjam.progress import Progress, Relay
-from parjam.study import plan, scene as scene_mod
-from parjam.study.runner import Runner, owned as runner_owned
 
 
 def add_parser(sub):
@@ -53,6 +51,10 @@ def draw(pictures):
 
 
 def run(args):
+    # the study's modules load here, not when the command line is built (parjam --help)
+    from parjam.study import plan, scene as scene_mod
+    from parjam.study.runner import Runner, owned as runner_owned
+
     scene = scene_mod.load(args.scene)
     stages = plan.plan(scene)
     world = env.petsc().COMM_WORLD

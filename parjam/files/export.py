@@ -29,12 +29,11 @@ import numpy as np
 from parjam import __version__
 from parjam.errors import ParjamError
 from parjam.files import outputs
+from parjam.files.formats import EXPORT_ATOM_STYLES, EXPORT_EXTENSIONS, EXPORT_FORMATS
 from parjam.net.system import sphere_volume
 
-FORMATS = ("extxyz", "lammps-data", "gsd")
-EXTENSIONS = {".xyz": "extxyz", ".extxyz": "extxyz", ".data": "lammps-data",
-              ".lmp": "lammps-data", ".lammps": "lammps-data", ".gsd": "gsd"}
-ATOM_STYLES = ("sphere", "atomic")
+FORMATS, EXTENSIONS = EXPORT_FORMATS, EXPORT_EXTENSIONS
+ATOM_STYLES = EXPORT_ATOM_STYLES
 MAX_TYPES = 26 * 27  # names A .. Z, then AA .. ZZ: more distinct species than any dispersity
 
 

@@ -19,14 +19,11 @@ import numpy as np
 
 from parjam.files import export, h5md, lammpsio
 from parjam.errors import ParjamError
+from parjam.files.formats import IMPORT_EXTENSIONS, IMPORT_FORMATS
 from parjam.files.h5md import read_packing
 from parjam.net.system import Packing
 
-FORMATS = ("extxyz", "lammps-data", "lammps-dump", "gsd", "h5md")
-EXTENSIONS = {".xyz": "extxyz", ".extxyz": "extxyz", ".data": "lammps-data",
-              ".lmp": "lammps-data", ".lammps": "lammps-data", ".dump": "lammps-dump",
-              ".lammpstrj": "lammps-dump", ".gsd": "gsd", ".h5": "h5md", ".h5md": "h5md",
-              ".hdf5": "h5md"}
+FORMATS, EXTENSIONS = IMPORT_FORMATS, IMPORT_EXTENSIONS
 ATOM_STYLES = lammpsio.STYLES
 MAX_BYTES = 4 << 30  # a text file larger than this is refused before it is read
 PHI_MIN = 0.05  # the volume fractions `parjam pack` starts from (its --phi-start range)

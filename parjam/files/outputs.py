@@ -28,7 +28,6 @@ import os
 import stat
 import tempfile
 
-import h5py
 import numpy as np
 
 from parjam.errors import ParjamError
@@ -325,6 +324,8 @@ def atomic_h5(path, make_dirs=True):
     half-written file open until the interpreter exits."""
     global _IMAGES
     _IMAGES += 1
+    import h5py  # here: the command line loads this module before any file is written
+
     f = h5py.File(f"parjam-image-{os.getpid()}-{_IMAGES}.h5", "w", driver="core",
                   backing_store=False)
     try:

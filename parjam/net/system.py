@@ -4,7 +4,6 @@ diameters, volume fraction, minimum-image separations and neighbour pairs."""
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from parjam.net import potential
 
@@ -77,6 +76,8 @@ DUPLICATE_TOL = 1e-9  # centres closer than this times the smallest diameter coi
 def coinciding_pairs(pos, diam, L):
     """Pairs (i < j) of coinciding centres (closer than DUPLICATE_TOL x the smallest diameter):
     a packing holding one would divide by r = 0 in every force."""
+    from scipy.spatial import cKDTree  # here: the data model alone loads no scipy
+
     pairs = cKDTree(pos, boxsize=L).query_pairs(DUPLICATE_TOL * diam.min(),
                                                 output_type="ndarray")
     return np.sort(pairs, axis=1) if len(pairs) else np.zeros((0, 2), dtype=np.int64)
@@ -108,6 +109,8 @@ def neighbour_pairs(pos, L, cutoff):
     if L <= 2.0 * cutoff:
         raise ValueError(f"box edge {L:.3g} is not larger than twice the neighbour cutoff "
                          f"{cutoff:.3g}: too few particles for this box")
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(pos, boxsize=L)
     pairs = tree.query_pairs(cutoff, output_type="ndarray")
     if pairs.size == 0:

@@ -49,7 +49,7 @@ from parjam.pack.staterows import StateRows
 from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW,
                              DEFAULT_FTOL, DEFAULT_PHI_START, DEFAULT_RATIO)
 # the random start lives in parjam.pack.randomstart; these names stay importable from here
-from parjam.pack.randomstart import DISPERSITIES, member_rng, random_packing, start_rows
+from parjam.pack.randomstart import member_rng, random_packing, start_rows
 from parjam.net.system import sphere_volume, wrap
 
 PHI_MAX = {2: 0.99, 3: 0.9}  # the phi_c search gives up above these (nothing jams so late)

@@ -13,6 +13,7 @@ from parjam.errors import ParjamError
 DEFAULT_PHI_START = {2: 0.86, 3: 0.66}  # random starts above phi_c (2D bidisperse, 3D mono)
 DEFAULT_DISPERSITY = {2: "bi", 3: "mono"}  # of scenes and make_jammed (mono 2D crystallises)
 DEFAULT_ALPHA = 2.0  # harmonic contacts
+DISPERSITIES = ("mono", "bi", "poly")  # --dispersity (the diameters: parjam.pack.randomstart)
 DEFAULT_RATIO = 1.4  # large/small diameter (bi) or max/min (poly)
 DEFAULT_FTOL = 1e-13  # max |F| of a minimised state (docs/speed-accuracy.md: ftol <~ 1e-5 p)
 DEFAULT_ENERGY_WINDOW = (1e-16, 2e-16)  # E/N window defining phi_c (O'Hern et al. 2003)

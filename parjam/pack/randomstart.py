@@ -27,11 +27,10 @@ from parjam.net import exactsum
 from parjam.net.active import max_op, row_block
 from parjam.net.domain import as_mpi, send_rows
 from parjam.errors import ParjamError
-from parjam.pack.protocol import DEFAULT_ALPHA, DEFAULT_RATIO
+from parjam.pack.protocol import DEFAULT_ALPHA, DEFAULT_RATIO, DISPERSITIES
 from parjam.pack.staterows import StateRows
 from parjam.net.system import Packing, sphere_volume
 
-DISPERSITIES = ("mono", "bi", "poly")
 BINS_PER_RANK = 64  # histogram bins of the (cell key, draw) order per rank (balance ~1/64)
 
 

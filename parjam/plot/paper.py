@@ -16,7 +16,6 @@ import os
 from dataclasses import dataclass
 from typing import Callable
 
-import h5py
 import numpy as np
 
 from parjam.files import inputs, outputs
@@ -24,7 +23,6 @@ from parjam.errors import ParjamError
 from parjam.plot import DPI, LEGEND_FONTSIZE, atomic_png, pyplot
 from parjam.plot.labels import axis, readable_log_ticks, state_text, title
 from parjam.study.fits import bootstrap, fit_eq33, fit_power, law, log_slope
-from parjam.study.summary import read_summary
 
 #: figure group -> the bundled scenes (subdirectories of a results directory) that feed it
 SCENES = {"paper": ("paper-3d", "paper-2d", "paper-3d-10x", "paper-3d-10x-spectra"),
@@ -37,6 +35,10 @@ SCENES = {"paper": ("paper-3d", "paper-2d", "paper-3d-10x", "paper-3d-10x-spectr
 def read(path):
     """One summary file (parjam.study.summary.write_summary) as nested dicts; ParjamError if it
     is not one."""
+    import h5py  # here: `parjam plot --help` lists the figures without loading h5py or scipy
+
+    from parjam.study.summary import read_summary
+
     path = os.fspath(path)
     inputs.require(path)  # a FIFO named summary-*.h5 in a results directory: named, not opened
     if not h5py.is_hdf5(path):

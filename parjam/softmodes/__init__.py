@@ -24,40 +24,47 @@ Dense references for tests live in :mod:`parjam.testing.softmodes_reference`.
 """
 
 from parjam.errors import ParjamError
-from parjam.softmodes.analysis import SoftModes, analyze, characterise
-from parjam.softmodes.basis import (BASIS_METHODS, COLUMNS_DEFAULT, COLUMNS_MAX, NullBasis,
-                                    eq3_residual)
-from parjam.softmodes.counting import (count_below, expected_zero_modes, gap_counts,
-                                       null_count, variational_count)
-from parjam.softmodes.cut import (AXES, CutSystem, Plane, WholeCut, bound_to, crossing,
-                                  cut_masks, cut_system, half_edge_masks, parse_cut, prepare,
-                                  subdivision_planes)
-from parjam.softmodes.krylov import null_basis_krylov
-from parjam.softmodes.linalg import allmax, allreduce, gram, orthonormality_error, random_block
-from parjam.softmodes.nullspace import gap_above, null_basis, null_basis_block
-from parjam.softmodes.observables import (E0_LADDER, coordinate_from_plane, extended_basis,
-                                          extended_fraction, extension, gradient_bound,
-                                          all_localised_vectors, localised_vectors,
-                                          modulation, overlap_function,
-                                          overlap_without_localised, without_localised)
-from parjam.softmodes.operators import (relaxed_matrix, rigidity_matrix, stiffness_scale,
-                                        translation_columns, translations)
-from parjam.softmodes.gather import cut_pairs, localised_ids
-from parjam.softmodes.scratch import ScratchBasis, ScratchSpace, check_directory, scratch_space
-from parjam.softmodes.trial import energies, omega_L2, trial_modes
 
-__all__ = [
-    "AXES", "BASIS_METHODS", "COLUMNS_DEFAULT", "COLUMNS_MAX", "CutSystem", "E0_LADDER",
-    "NullBasis", "ParjamError", "Plane", "ScratchBasis", "ScratchSpace", "SoftModes",
-    "WholeCut", "all_localised_vectors", "allmax", "allreduce", "analyze",
-    "bound_to", "characterise", "check_directory", "coordinate_from_plane", "count_below",
-    "crossing", "cut_masks", "cut_pairs", "cut_system", "energies", "eq3_residual",
-    "expected_zero_modes", "extended_basis", "extended_fraction", "extension", "gap_above",
-    "gap_counts",
-    "gradient_bound", "gram", "half_edge_masks", "localised_ids", "localised_vectors",
-    "modulation", "null_basis", "null_basis_block", "null_basis_krylov", "null_count",
-    "omega_L2", "orthonormality_error", "overlap_function", "overlap_without_localised",
-    "parse_cut", "prepare", "random_block", "relaxed_matrix", "rigidity_matrix",
-    "scratch_space", "stiffness_scale", "subdivision_planes", "translation_columns",
-    "translations", "trial_modes", "variational_count", "without_localised",
-]
+#: where each name lives: its module loads when the name is first used, so that importing one
+#: step (the command line builds its parser from .basis and .scratch) does not load them all
+WHERE = {
+    **dict.fromkeys(("SoftModes", "analyze", "characterise"), "analysis"),
+    **dict.fromkeys(("BASIS_METHODS", "COLUMNS_DEFAULT", "COLUMNS_MAX", "NullBasis",
+                     "eq3_residual"), "basis"),
+    **dict.fromkeys(("count_below", "expected_zero_modes", "gap_counts", "null_count",
+                     "variational_count"), "counting"),
+    **dict.fromkeys(("AXES", "CutSystem", "Plane", "WholeCut", "bound_to", "crossing",
+                     "cut_masks", "cut_system", "half_edge_masks", "parse_cut", "prepare",
+                     "subdivision_planes"), "cut"),
+    **dict.fromkeys(("null_basis_krylov",), "krylov"),
+    **dict.fromkeys(("allmax", "allreduce", "gram", "orthonormality_error", "random_block"),
+                    "linalg"),
+    **dict.fromkeys(("gap_above", "null_basis", "null_basis_block"), "nullspace"),
+    **dict.fromkeys(("E0_LADDER", "all_localised_vectors", "coordinate_from_plane",
+                     "extended_basis", "extended_fraction", "extension", "gradient_bound",
+                     "localised_vectors", "modulation", "overlap_function",
+                     "overlap_without_localised", "without_localised"), "observables"),
+    **dict.fromkeys(("relaxed_matrix", "rigidity_matrix", "stiffness_scale",
+                     "translation_columns", "translations"), "operators"),
+    **dict.fromkeys(("cut_pairs", "localised_ids"), "gather"),
+    **dict.fromkeys(("ScratchBasis", "ScratchSpace", "check_directory", "scratch_space"),
+                    "scratch"),
+    **dict.fromkeys(("energies", "omega_L2", "trial_modes"), "trial"),
+}
+
+
+def __getattr__(name):
+    if name not in WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(f"{__name__}.{WHERE[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return __all__
+
+
+__all__ = ["ParjamError", *sorted(WHERE)]

@@ -18,11 +18,10 @@ from parjam.files import inputs
 from parjam.study.tables import Table, show
 from parjam.vib import solver_choice
 from parjam.errors import ParjamError
-from parjam.pack.packing import DISPERSITIES
-from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW, DEFAULT_FTOL,
-                             DEFAULT_RATIO, LADDERS, PHIC_METHODS, PackingProtocol,
-                             check_tolerances)
-from parjam.vib.spectrum import MATRICES
+from parjam.pack.protocol import (DEFAULT_ALPHA, DEFAULT_DISPERSITY, DEFAULT_ENERGY_WINDOW,
+                                  DEFAULT_FTOL, DEFAULT_RATIO, DISPERSITIES, LADDERS,
+                                  PHIC_METHODS, PackingProtocol, check_tolerances)
+from parjam.vib.solver_choice import MATRICES
 
 
 # --------------------------------------------------------------------------- the parsed scene

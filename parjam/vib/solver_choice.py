@@ -18,6 +18,10 @@ LAPACK truth on the same packings):
 from dataclasses import dataclass
 
 from parjam.errors import ParjamError
+from parjam.net.blocks import KINDS
+
+METHODS = ("auto", "dense", "sinvert", "slice")  # parjam modes --method
+MATRICES = KINDS  # the matrices of Eq. (1) a spectrum is computed for: full, relaxed, stress
 
 WHOLE_MAX_DOF = 12000  # the whole spectrum by dense LAPACK up to this many degrees of freedom
 PARTIAL_DENSE_MAX_DOF = 3000  # the k lowest modes or a window: never dense above this

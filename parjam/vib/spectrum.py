@@ -36,13 +36,12 @@ import numpy as np
 from parjam import env
 from parjam.errors import ParjamError, UnjammedError
 from parjam.net import active
-from parjam.net.blocks import KINDS, contact_blocks
+from parjam.net.blocks import contact_blocks
 from parjam.vib import factor, hessian, observables, solver_choice, translations
+from parjam.vib.solver_choice import MATRICES, METHODS
 from parjam.vib.dense import (DenseSystem, count_below_dense, deflated_dense, dense_eigh,
                               dense_matrix)
 
-METHODS = ("auto", "dense", "sinvert", "slice")
-MATRICES = KINDS
 DENSE_LIMIT_DOF = 20000  # --method dense refused above (a 20000^2 matrix is 3.2 GB)
 ZERO_TOL = 1e-9  # |lambda| / ||D||_inf below which an eigenvalue belongs to the zero cluster
 PREFIX = "modes_"
