@@ -17,6 +17,7 @@ from parjam.net import order
 from parjam.pack import staterows
 from parjam.net.active import row_block
 from parjam.net.network import analyze
+from parjam.study.members import write_state
 
 from conftest import DATA, run_on_ranks
 
@@ -56,7 +57,7 @@ def test_file_by_rows_is_the_serial_file(name, shared_tmp):
     else:
         assert np.isnan(hexatic).all()
     new = os.path.join(shared_tmp, f"rows-{name}")
-    staterows.write(new, rows, net, PARAMS, {"ranks": 1}, dict(EXTRA, hexatic=hexatic[0]))
+    write_state(new, rows, net, PARAMS, {"ranks": 1}, dict(EXTRA, hexatic=hexatic[0]))
     if COMM.Get_rank() == 0:
         ref = os.path.join(shared_tmp, f"serial-{name}")
         h5md.write_packing(ref, pack, analyze(pack), PARAMS, {"ranks": 1},
