@@ -1,4 +1,4 @@
-"""Deliberate faults, to test that a failure on one MPI rank ends every rank (docs/reliability.md).
+"""Deliberate faults, to test that a failure on one MPI rank ends every rank (docs/explanation/reliability.md).
 
 ``PARJAM_FAULT=POINT@RANK[:KIND]`` makes world rank RANK fail when it reaches the named POINT:
 

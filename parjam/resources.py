@@ -1,5 +1,5 @@
 """Will a plan fit this machine?  Memory and time estimates of ``pack`` and ``run`` checked
-before the work starts (docs/reliability.md, "Sizes and the machine check").
+before the work starts (docs/explanation/reliability.md, "Sizes and the machine check").
 
 - memory: the largest estimate per rank times the ranks on this node, against what the node
   can still give (MemAvailable of /proc/meminfo, and the cgroup v2/v1 limit minus its usage
@@ -22,7 +22,7 @@ from parjam.errors import ParjamError
 
 MAX_DAYS = 30.0
 #: pack: peak resident memory of one process (MB) = BASE + PER_PARTICLE * N, from the measured
-#: 1.15 GB of a 3D N = 10^5 ladder (docs/scaling.md) and ~150 MB for the interpreter
+#: 1.15 GB of a 3D N = 10^5 ladder (docs/explanation/scaling.md) and ~150 MB for the interpreter
 #: with PETSc, h5py and numpy loaded; the positions, neighbour lists, Hessian and checkpoints of
 #: a member are not divided over the ranks that share it (conservative)
 PACK_BASE_MB = 150.0
@@ -33,7 +33,7 @@ PACK_PER_PARTICLE_MB = 0.0105
 #: stability.md).  Where that test is inconclusive, the exact inertia (a MUMPS LDL^T of the
 #: full Hessian, its factor discarded, so its frontal stack) decides, but only up to
 #: stability.EXACT_MAX_DOF = 100,000 rows (N = 33,333 in 3D): in 3D 745 MB at N = 32768, growing
-#: as N^1.5 (measured 55 / 273 / 745 MB at N = 4096 / 13824 / 32768; docs/scaling.md,
+#: as N^1.5 (measured 55 / 273 / 745 MB at N = 4096 / 13824 / 32768; docs/explanation/scaling.md,
 #: "Counting without keeping the factor"), so below that size the model keeps the factor.  In
 #: 2D the factor adds under 1 kB per particle (245 MB at N = 262,144), inside
 #: PACK_PER_PARTICLE_MB.

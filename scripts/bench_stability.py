@@ -21,7 +21,7 @@ check alone, the resident set once the network is built (``before``) and its pea
 ru_maxrss) on every rank, the verdict, the count, the Lanczos steps and its failure bound.
 weak: ``parjam pack --from FILE --phi 0.70`` (the state re-minimised, checked and written: the
 memory of the whole command) on P ranks at N = per-rank x P, both methods interleaved, peak RSS
-per rank by /usr/bin/time (scripts/peak_rss.py).
+per rank by the benchmarks' memory wrapper (scripts/benchmarks/harness.py).
 census: both checks on states saved as .npz (x, ids, diam, L, alpha, eps and the verdict of the
 run that saved them, e.g. every state the packing protocol checked), one JSON line per state.
 The machine is shared: every record carries the load average at its start.
@@ -40,7 +40,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "scripts"))
 
-from peak_rss import measured, mpirun  # noqa: E402
+from benchmarks.harness import mpirun, run as harness_run  # noqa: E402
 
 PYTHON = os.path.join(ROOT, ".venv", "bin", "python")
 SMALL = os.path.join(ROOT, "tests", "data", "soft_d3_N512_m0.h5")
@@ -77,6 +77,17 @@ if mpi.rank == 0:
 
 def load():
     return os.getloadavg()[0]
+
+
+def measured(ranks, argv, what):
+    """Peak RSS per rank (MB), seconds and the run of ``argv`` on ``ranks`` ranks, each rank
+    under the benchmarks' memory wrapper (scripts/benchmarks/harness.py); a run without a
+    memory report ends the benchmark, naming ``what``."""
+    res = harness_run(argv, ranks=ranks)
+    if not res.rss_mb:
+        sys.stderr.write(res.stdout[-2000:] + res.stderr[-2000:])
+        raise SystemExit(f"{what}: no memory report ({res.error})")
+    return res.rss_mb, res.seconds, res
 
 
 def child(path, ranks, method, extra=()):

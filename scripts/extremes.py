@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The measurements of docs/reliability.md "Honest at the extremes" and docs/reproduction.md
+"""The measurements of docs/explanation/reliability.md "Honest at the extremes" and docs/results/reproduction.md
 "p / dphi down to 1e-10".
 
     scripts/extremes.py pdphi  --dim 3 --n 64 256 --seeds 4 --out bench-out/pdphi-3d.jsonl
@@ -242,7 +242,7 @@ def census_files(paths):
     print(f"\nmembers {sorted(seconds)}; seconds per member (the largest 'seconds' of its "
           f"files): " + ", ".join(f"{seconds[m]:.0f}" for m in sorted(seconds)))
     # Eq. (22): dz = C0 p^b over dphi = 1e-5 .. 1e-1, least squares in log-log of the ensemble
-    # means, dz = 2 (Nc - Nc_iso) / N' (docs/reproduction.md conventions)
+    # means, dz = 2 (Nc - Nc_iso) / N' (docs/results/reproduction.md conventions)
     fit = [st for st in rows if st != "phi_c" and 1e-5 <= float(st[4:]) <= 1e-1]
     if fit:
         members = sorted({r["member"] for st in fit for r in rows[st]})

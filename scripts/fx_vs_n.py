@@ -1,4 +1,4 @@
-"""The overlap function f(x) of the soft modes against N (docs/reproduction.md section 12):
+"""The overlap function f(x) of the soft modes against N (docs/results/reproduction.md section 12):
 isostatic members at several N, both cut geometries, one results JSON.
 
 Why one file of ~510 lines: run, adopt, collect and tables share one directory layout
@@ -29,7 +29,7 @@ DIR/N{N}/costs.json.  ``collect`` reads every cut file (never recomputes) and wr
 f(x), c, q'/q on the e0 ladder, mean extension, omega_t^2, mean modulated energy, costs; per N
 and geometry: means with bootstrap errors over members (parjam.study.fits); and the fits against L
 (trial energies ~ L^b, c ~ L^b), with the variational bound q'/q >= (c/2 - e0)/(1 - e0)
-evaluated (section 12 of docs/reproduction.md says what each number means).
+evaluated (section 12 of docs/results/reproduction.md says what each number means).
 """
 
 import argparse
@@ -98,7 +98,7 @@ def dphi_for(n, dphi):
     N dphi^(1/2): at a fixed dphi an exactly isostatic member gets rarer as N grows (at 1e-8
     the measured census is 5 of 5 at N = 1024 and about 1 in 3 at 4096; at 16384 Eq. 22 gives
     ~6 excess contacts), and keeping N dphi^(1/2) at its N = 4096 value keeps the census of
-    4096 (docs/reproduction.md section 12)."""
+    4096 (docs/results/reproduction.md section 12)."""
     if dphi != "auto":
         return float(dphi)
     return 1e-8 * min(1.0, (4096.0 / n) ** 2)
@@ -380,7 +380,7 @@ def pm(v, e, fmt="{:.3f}"):
 
 
 def tables(args):
-    """The markdown tables of docs/reproduction.md section 12, from the results JSON."""
+    """The markdown tables of docs/results/reproduction.md section 12, from the results JSON."""
     res = load(args.results, None)
     lines = ["| N | packed (checked) | isostatic | Nc - Nc_iso (dphi) | pack CPU s / wall s per "
              "member | pack peak MB |", "|---|---|---|---|---|---|"]

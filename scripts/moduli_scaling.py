@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Elastic moduli, sound speeds and lengths over a dphi ladder for an ensemble, with fitted
-exponents and bootstrap errors over members.  Run by hand (results in docs/moduli.md):
+exponents and bootstrap errors over members.  Run by hand (results in docs/results/moduli-lengths.md):
 
     nice -n 10 .venv/bin/python scripts/moduli_scaling.py --dim 3 --n 256 --members 8 \
         --dphi 1e-4 1e-3 1e-2 1e-1 [--alpha 2] [--lengths] --out bench-out/scaling_d3.json

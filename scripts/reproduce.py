@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The paper's figures and laws from the bundled scenes' results (docs/reproduction.md).
+"""The paper's figures and laws from the bundled scenes' results (docs/results/reproduction.md).
 
     mpirun -n 2 parjam run scenes/paper-3d.toml --out results/repro/paper-3d   (and the others)
     python scripts/reproduce.py --results results/repro --img docs/img \

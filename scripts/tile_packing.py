@@ -6,7 +6,7 @@ modes, which is fine for memory and time measurements, not for physics at long w
 
     .venv/bin/python scripts/tile_packing.py SMALL.h5 K OUT.h5
 
-Writes OUT.h5 in the layout of docs/file-format.md (parjam.files.h5md.write_packing, one rank), with
+Writes OUT.h5 in the layout of docs/reference/file-format.md (parjam.files.h5md.write_packing, one rank), with
 the /parameters of the small file and ``tiled_from``/``tiles`` added.
 """
 

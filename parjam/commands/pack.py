@@ -356,5 +356,5 @@ def _run(args):
             print(line, flush=True)
         sys.stdout.flush()
     # exit 3 (unjammed) when any member's ladder stopped early, though its jammed states are
-    # written: the run did not deliver every state it was asked for (docs/reliability.md)
+    # written: the run did not deliver every state it was asked for (docs/explanation/reliability.md)
     return UnjammedError.exit_code if mpi.bcast(bool(incomplete), root=0) else 0

@@ -4,7 +4,7 @@
     parjam plot SPECTRUM.h5 [MORE.h5 ...] --out spectra.png
 
 A results directory (or summary files of ``parjam run``) gives the paper's figures and their
-fitted laws (parjam.plot.paper, docs/reproduction.md); a single result file of another command
+fitted laws (parjam.plot.paper, docs/results/reproduction.md); a single result file of another command
 gives that command's figure (parjam.plot.spectra, .softmodes, .moduli).  The kind of every input
 is recognised from its content.  Drawn on rank 0 only; every PNG is written under a temporary
 name and renamed when complete.

@@ -1,4 +1,4 @@
-"""HDF5 files in the H5MD 1.1 layout (docs/file-format.md) through h5py.
+"""HDF5 files in the H5MD 1.1 layout (docs/reference/file-format.md) through h5py.
 
 Writes are atomic: a file is written under a temporary name in the same directory and renamed
 into place only when complete, so a killed run never leaves a truncated file that looks valid.
@@ -101,7 +101,7 @@ def write_particles(f, pack, group="all"):
     MDAnalysis's reader reads ``box/edges/value`` of the frame).  Positions and their time carry
     no ``unit`` attribute: MDAnalysis refuses any unit it cannot convert to its own (even with
     convert_units=False), and parjam's units are reduced (sigma, epsilon); every other
-    dimensionful quantity names its unit (docs/file-format.md)."""
+    dimensionful quantity names its unit (docs/reference/file-format.md)."""
     part = particles_header(f, pack.d, pack.L, group)
     part["position/value"] = pack.pos[None, :, :]
     part.create_dataset("diameter", data=pack.diam).attrs["unit"] = fixed_string(LENGTH)
@@ -143,7 +143,7 @@ def _time_series(group, value, unit):
 
 
 def write_packing(path, pack, net, parameters, prov=None, observables=None):
-    """One packing and its contact network (H5MD layout; see docs/file-format.md); extra
+    """One packing and its contact network (H5MD layout; see docs/reference/file-format.md); extra
     ``observables`` (name: value) go to /observables beside the network's, each an H5MD time
     series of one frame (read them back with :func:`observable`)."""
     with atomic_h5(path) as f:

@@ -1,5 +1,5 @@
 """The manifest of a ``parjam pack`` output directory: which members are finished, so that a killed
-run restarted with the same command resumes without recomputing them (docs/reliability.md).
+run restarted with the same command resumes without recomputing them (docs/explanation/reliability.md).
 
 - ``DIR/manifest.json`` (written atomically by world rank 0 at the start and at the end of a run):
   the run's parameters (everything that determines the packings) and, per finished member, its

@@ -1,4 +1,4 @@
-"""The spectrum file (docs/spectra.md): one HDF5 file per (packing, matrix, method), H5MD header
+"""The spectrum file (docs/howto/spectra.md): one HDF5 file per (packing, matrix, method), H5MD header
 plus
 
     /modes/eigenvalue            (K,)  ascending lambda = omega^2

@@ -1,4 +1,4 @@
-"""The output policy of every command that writes (docs/reliability.md, "Outputs").
+"""The output policy of every command that writes (docs/explanation/reliability.md, "Outputs").
 
 1. **Checked before any work** (:func:`check`, collective: rank 0 looks, every rank raises the
    same one-line ParjamError): a file can be created in a file output's directory

@@ -4,7 +4,7 @@ The installed h5py is serial (no ``mpio`` driver), so every rank opens the file 
 itself (independent opens; concurrent readers of one HDF5 file are safe) and reads only its
 contiguous block of rows of /particles/all/position/value (the last frame of a time series)
 and /particles/all/diameter, as h5py hyperslabs.  The small metadata (box edges, /parameters)
-is read by every rank.  Files are the ones of docs/file-format.md, unchanged.
+is read by every rank.  Files are the ones of docs/reference/file-format.md, unchanged.
 
 Validation gives the one-line errors of parjam.files.h5md.read_packing before any work: the layout and
 parameters are checked identically on every rank, the values of each rank's rows locally and

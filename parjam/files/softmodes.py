@@ -1,4 +1,4 @@
-"""The file of ``parjam softmodes``: /softmodes/* (docs/file-format.md), written atomically on
+"""The file of ``parjam softmodes``: /softmodes/* (docs/reference/file-format.md), written atomically on
 rank 0.  Per-particle data live on the ranks that own them and reach rank 0 one rank's block at
 a time (net.domain.blocks_in_turn), each written at its particle ids: rank 0 never holds all N
 rows, only one rank's block of one column block of the basis.  The cut contacts and the
@@ -13,7 +13,7 @@ AXES = "xyz"
 
 
 def write(comm, path, res, cut, localised, vectors=False, prov=None, block=64):
-    """/softmodes/* (docs/file-format.md) of the analysis ``res`` (parjam.softmodes.SoftModes),
+    """/softmodes/* (docs/reference/file-format.md) of the analysis ``res`` (parjam.softmodes.SoftModes),
     written atomically on rank 0 (collective); ``cut`` and ``localised`` are the ids
     gathered on rank 0 (parjam.softmodes.gather); the basis only with ``vectors``, each rank's
     rows sent to rank 0 in turn, ``block`` modes at a time."""

@@ -56,7 +56,7 @@ def christoffel_speeds(mod, khat, rho):
 
 
 def omega_star(spec, n_active, d, plateau=None):
-    """(D0, omega*, plateau window) of a spectrum (docs/spectra.md definitions)."""
+    """(D0, omega*, plateau window) of a spectrum (docs/howto/spectra.md definitions)."""
     return observables.dos_summary(spec.frequency, observables.n_modes_total(n_active, d),
                                    plateau)
 

@@ -1,5 +1,5 @@
 """numpy's sum of an array whose contiguous blocks live on different ranks, bitwise the value
-``np.sum`` gives on the whole array on one rank (issue 18: the box of a random start and the
+``np.sum`` gives on the whole array on one rank (so the box of a random start and the
 Jammer's sphere volume are then the serial ones on any number of ranks, with no rank holding N
 values).
 

@@ -13,7 +13,7 @@ triangular lattice does not fit the square box).  What gives every ordered state
 contact count: an amorphous jammed packing is isostatic at phi_c and gains contacts only as
 dz ~ z0 sqrt(dphi) above it (O'Hern et al. 2003; dz / sqrt(dphi) <= 3.7 in all 24 states of
 6 bidisperse 2D members, N = 256, dphi = 1e-4 .. 1e-1, and 3.2 at N = 128, dphi = 1e-3:
-docs/reliability.md), while a crystal is hyperstatic already at phi_c.  :func:`ordered_by_contacts` flags a 2D state whose excess exceeds
+docs/explanation/reliability.md), while a crystal is hyperstatic already at phi_c.  :func:`ordered_by_contacts` flags a 2D state whose excess exceeds
 EXCESS_MIN contacts and whose dz exceeds DZ_FACTOR sqrt(dphi) + DZ_FINITE / N' (twice the
 largest measured amorphous z0, plus a finite-size allowance of a few contacts).  It flags the
 N = 16 state above and all 10 monodisperse N = 64 members at dphi = 1e-4 (hyperstatic by

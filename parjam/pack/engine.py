@@ -1,6 +1,6 @@
 """The packing engine on the spatial domain decomposition (parjam.net.domain): FIRE's state of one
 packing held as numpy arrays of each rank's own particles (a slab) and a halo of ghosts, so that
-no rank holds or loops over all N particles (issue 18).
+no rank holds or loops over all N particles.
 
 Each rank owns the particles of its slab (positions, velocities, diameters, global ids, sorted
 by id).  A neighbour rebuild hands particles that left a slab to their new owner

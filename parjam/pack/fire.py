@@ -44,7 +44,7 @@ class FireParams:
 
 
 VARIANTS = ("fire", "fire2")
-# the variant minimize() uses when not told otherwise (docs/scaling.md, "FIRE 2.0")
+# the variant minimize() uses when not told otherwise (docs/explanation/scaling.md, "FIRE 2.0")
 DEFAULT_VARIANT = "fire"
 
 

@@ -1,4 +1,4 @@
-"""The packing protocol's per-state contact network on the slabs of parjam.net.domain (issue 18):
+"""The packing protocol's per-state contact network on the slabs of parjam.net.domain:
 what the Jammer asks of every minimised state (energy, pressure, residual forces, mean contact
 force and stiffness, N', Nc - Nc_iso) from the positions each rank holds, with O(N/P) memory.
 

@@ -127,12 +127,11 @@ class MinimiseState:
 
 # Above this many degrees of freedom FIRE itself converges to ftol; Newton is only the fall-back
 # when FIRE does not (its step cap).  Measured with scripts/pack_steps.py (the extrapolation
-# protocol to dphi = 1e-3, 3D, 1 rank, same seeds, one other job on the second core; docs/scaling.md
-# "Session 7"), time of FIRE + Newton against FIRE alone: N = 1024 12.4 s / 11.3 s (4 seeds),
+# protocol to dphi = 1e-3, 3D, 1 rank, same seeds, one other job on the second core; docs/explanation/scaling.md), time of FIRE + Newton against FIRE alone: N = 1024 12.4 s / 11.3 s (4 seeds),
 # 4096 95 / 56 s (3), 8192 558 / 290 s (4), 16384 1446 / 989 s (3), 32768 3765 / 1329 s (1, where
 # Newton's CG + GAMG steps took 77 % of the run); at dphi = 1e-6, N = 4096 (2 seeds) 247 / 211 s.
 # FIRE alone needs more FIRE steps (up to 1.5x), but a Newton step costs ~10^3 (MUMPS) to 10^4
-# (CG + GAMG) of them.  In 2D (bidisperse, 2 seeds each; session 8) FIRE + Newton against FIRE
+# (CG + GAMG) of them.  In 2D (bidisperse, 2 seeds each) FIRE + Newton against FIRE
 # alone: N = 4096 23.6 / 28.5 s, 8192 55.5 / 46.7 s, 16384 576 / 396 s, and 4096 at
 # dphi = 1e-6 168 / 98 s: the 2D factorisation is cheap, so the Newton tail still pays at the
 # threshold, but not above it or near jamming; one threshold serves both dimensions.

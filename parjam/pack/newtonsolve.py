@@ -32,7 +32,7 @@ from parjam.logevents import ASSEMBLY, FACTOR, event
 
 # Above this many degrees of freedom the factorisation (on one rank) gives way to ExactCG.
 # 3D N = 32768 quench at phi = 0.66 (98k dof, one rank): the Newton phase took 120 s with CG
-# + GAMG against 380 s with MUMPS (21-35 s per factorisation), same minimum (docs/bench-pack.md).
+# + GAMG against 380 s with MUMPS (21-35 s per factorisation), same minimum (docs/results/benchmarks.md).
 NEWTON_CG_DOF = 60000
 CG_RTOL = 1e-8  # ExactCG's relative residual (the CG + GAMG tolerance it replaces)
 CG_MAX_IT = 5000

@@ -379,7 +379,7 @@ class Jammer:
         minimise (to the balance of ``relax_balanced``): the compressed network closes the
         near-contacts that left the state a saddle, and keeps them on the way back where the
         directional escapes could not find them (measured: N = 1024, dphi = 1e-9 .. 1e-8,
-        docs/reliability.md).  Returns (MinResult, Curvature) at ``phi``."""
+        docs/explanation/reliability.md).  Returns (MinResult, Curvature) at ``phi``."""
         dphi = self.virial_dphi()
         self._log(f"compression cycle: to {factor:g} x dphi = {factor * dphi:.2e} and back")
         self.relax(phi + (factor - 1.0) * dphi)

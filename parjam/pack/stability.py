@@ -30,7 +30,7 @@ non-translational eigenvalue: the Lanczos test's witness (its Ritz vector, conve
 at a target just below it, found from inertias (options prefix ``stability_``).  The packing
 protocol (parjam.pack.packing) follows it out of the saddle before minimising again.
 
-Everything is distributed (issue 18): the state is a parjam.pack.jamnet.JamNetwork (each rank its
+Everything is distributed: the state is a parjam.pack.jamnet.JamNetwork (each rank its
 slab of particles and the half-edges of their contacts), D is assembled from those half-edges
 into block rows [lo, hi) of the active numbering (hessian.assemble(rows=...)), the softest
 direction stays a distributed vector mapped back onto the owned particles, and the escape

@@ -10,7 +10,7 @@ state comes from those rows:
 - the hexatic order of 2D states (parjam.net.order's psi6) from the half-edges of the neighbours
   closer than 1.25 sigma_ij on the slabs, summed per particle in the serial order, and over
   particles exactly (the same bits on any number of ranks);
-- the rows of its file (``packing_rows``: h5md.write_packing's content, docs/file-format.md, which
+- the rows of its file (``packing_rows``: h5md.write_packing's content, docs/reference/file-format.md, which
   parjam.files.rowio.write_packing_rows writes): the rattler flags and every contact (i < j, its
   overlap, force and stiffness) are sent to the rank whose id block holds i and sorted there
   into the file's (i, j) order.

@@ -1,4 +1,4 @@
-"""The paper's figures and laws from the summary files of ``parjam run`` (docs/reproduction.md).
+"""The paper's figures and laws from the summary files of ``parjam run`` (docs/results/reproduction.md).
 
 A results directory holds one subdirectory per bundled scene (``SCENES``: ``paper-3d``,
 ``paper-2d``, ``paper-3d-10x``, ``hertz-3d``, ``softmodes-3d``, each the ``--out`` of

@@ -216,7 +216,7 @@ def fx_vs_n_figure(results, path):
     """From the JSON of scripts/fx_vs_n.py (read, never recomputed): f(x) against x/L per N for
     the one-plane cut and the cube with all faces cut (bands: bootstrap errors over members),
     c and q'/q against N with the paper's variational bound, and the trial energies against L
-    with their fitted exponents (docs/reproduction.md section 12)."""
+    with their fitted exponents (docs/results/reproduction.md section 12)."""
     summary = results["summary"]
     geos = [g for g in ("plane", "faces") if summary.get(g, {}).get("per_N")]
     title = {"plane": "one plane cut (x = L/2)", "faces": "all faces cut (cube)"}

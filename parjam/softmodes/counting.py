@@ -47,7 +47,7 @@ def gap_counts(comm, M, scale, thresholds, prefix="soft_inertia_"):
     """Eigenvalues of M below t * scale for each t in ``thresholds``.  Counts that differ are
     taken once more, each by a fresh factorisation, and the second set is returned: MUMPS's
     parallel LDL^T was seen to return a wrong inertia now and then on 8 oversubscribed ranks
-    (docs/scaling.md, "Soft modes on the distributed network"), while a genuine lack of gap
+    (docs/explanation/scaling.md, "Soft modes on the distributed network"), while a genuine lack of gap
     gives the same differing counts again."""
     counts = [count_below(comm, M, t * scale, prefix=prefix) for t in thresholds]
     if len(set(counts)) > 1:

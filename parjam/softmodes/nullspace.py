@@ -33,7 +33,7 @@ def null_basis(comm, M, d, n_soft, scale, method="block", columns=COLUMNS_DEFAUL
                progress=None):
     """The n_soft null vectors of M orthogonal to the d translations (a :class:`NullBasis`), by
     block inverse iteration (``block``, the default; much faster for hundreds of modes, see
-    docs/bench-softmodes.md) in blocks of ``columns`` (None: one block) or by SLEPc
+    docs/results/benchmarks.md) in blocks of ``columns`` (None: one block) or by SLEPc
     Krylov-Schur shift-and-invert (``krylov``).  ``store`` (block only): a callable n_loc ->
     empty :class:`parjam.softmodes.scratch.ScratchBasis` that keeps the basis out of core.
     ``progress`` (block only): called with the number of null vectors found after each block."""

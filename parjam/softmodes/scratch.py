@@ -3,7 +3,7 @@ of every accepted column block to a file in a temporary directory under DIR, and
 reads it back in column blocks (deflation of the next block, the gap solve, the Eq. 3 check, the
 trial energies, the output) or in row chunks (Gram matrices, extension, f(x), the rotation of
 the Appendix, written back in place).  A cut then holds O(N columns) of basis in memory instead
-of N d n_soft (docs/bench-softmodes-memory.md).
+of N d n_soft (docs/results/benchmarks.md).
 
 :class:`ScratchBasis` is a row-split n_loc x k array on disk: ``V[a:z]`` reads rows a..z-1 of all
 columns, ``V[a:z] = R`` writes them, ``V.shape`` is its size; :meth:`ScratchBasis.column_blocks`

@@ -138,10 +138,10 @@ def choose_solver(req, system, solver):
         else "dense-eigh"
 
 
-# Time models of the partial spectra and of KPM, one core (docs/reproduction.md, section 11):
+# Time models of the partial spectra and of KPM, one core (docs/results/reproduction.md, section 11):
 # shift-and-invert of the k lowest modes ~ factorisation + k solves and orthogonalisations,
-# fitted to 4.5 s at 12273 dof, k = 50 (docs/speed-accuracy.md) and 140 s at 30720 dof, k = 1000
-# (N = 10240, docs/reproduction.md section 10); KPM = (probes x moments / 2 + 40 Lanczos)
+# fitted to 4.5 s at 12273 dof, k = 50 (docs/results/speed-accuracy.md) and 140 s at 30720 dof, k = 1000
+# (N = 10240, docs/results/reproduction.md section 10); KPM = (probes x moments / 2 + 40 Lanczos)
 # products of 0.45 - 0.8 ms at 30720 dof (N = 10240, 4096 moments x 4 probes in 4 - 7 s) +
 # evaluating the cumulative on a 4 M grid while the moments double (parjam.vib.kpm_dos).  Checked
 # at N = 10240 (section 11): 167 s of CPU per member measured against 205 s estimated.
@@ -190,7 +190,7 @@ def estimate(stage, scene):
             elif sol != "kpm":
                 k = max(stage.params[st]["k"], 50)
                 # Lanczos basis and vectors, plus the MUMPS factor: 6.3e6 entries at 12273 dof
-                # (docs/speed-accuracy.md), growing as dof^(4/3) in 3D, ~12 bytes an entry;
+                # (docs/results/speed-accuracy.md), growing as dof^(4/3) in 3D, ~12 bytes an entry;
                 # measured at N = 10240, k = 400: peak RSS 737 MB per rank, estimate 560 MB
                 mem = max(mem, 8 * dof * (k * 2 + 300) / 1e6 + 260 * dof ** (4 / 3) / 1e6)
                 sec += SINVERT_FACTOR * dof ** 1.5 + SINVERT_PER_MODE * k * dof

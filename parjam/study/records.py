@@ -117,7 +117,7 @@ def kpm_plateau_summary(comm, system, kind, omega):
     quantiles), omega* from the computed modes with it (parjam.vib.observables.omega_star: N(omega)
     is exact up to the highest computed mode; NaN if the modes do not reach 2 omega*).  The
     partial spectrum's own upper half would bias D0, and omega* with it, low: by 5-20 % at
-    dphi = 1e-5 .. 1e-3 (3D, N = 1024, docs/reproduction.md)."""
+    dphi = 1e-5 .. 1e-3 (3D, N = 1024, docs/results/reproduction.md)."""
     res = kpm.compute(comm, system, kind, **KPM_PLATEAU)
     d0, _, window = kpm.dos_summary(res)
     return d0, observables.omega_star(omega, system.n_modes, d0), window

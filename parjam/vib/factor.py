@@ -42,7 +42,7 @@ def exact_inertia(pc, null_pivots=False, inertia_only=False):
     counted).  ``inertia_only`` sets ICNTL(31) = 1: MUMPS discards the factors as it computes
     them, for a factorisation that is asked only for its inertia (stability checks, null-space
     counts; no solve can follow).  Its peak memory is then the frontal stack alone: 703 MB
-    instead of 1314 MB for the stability check at 98k dof (docs/scaling.md, "Counting without
+    instead of 1314 MB for the stability check at 98k dof (docs/explanation/scaling.md, "Counting without
     keeping the factor").  Call after the operators are set and before setUp; options given
     under the object's prefix still win."""
     if not is_mumps_cholesky(pc):

@@ -3,14 +3,14 @@
 resolution omega* needs, and the moments stored as a record and read back, so that the summary
 evaluates D(omega) from them and the plots read results only.
 
-Resolution (docs/speed-accuracy.md, "D(omega): dense LAPACK, spectrum slicing, KPM"): the
+Resolution (docs/results/speed-accuracy.md, "D(omega): dense LAPACK, spectrum slicing, KPM"): the
 Jackson kernel smears D(omega) over
 
     Delta omega = (pi / 2) sqrt(lambda_max) / M    (about 4 / M for 3D harmonic spheres, measured)
 
 uniformly in omega, and KPM's omega* (the onset estimator of parjam.vib.observables) is biased high
 until omega* >> Delta omega.  Measured against dense LAPACK at N = 1024
-(scripts/check_kpm_dense.py --calibrate, docs/reproduction.md section 11): +13 % at
+(scripts/check_kpm_dense.py --calibrate, docs/results/reproduction.md section 11): +13 % at
 omega*_KPM / Delta omega = 6.5 and -1 .. +3 % from 20 on at dphi = 1e-3; -2 .. -6 % at any
 ratio >= 10 at dphi >= 1e-2; but +17 % at 16 and +13 % at 30 at dphi = 1e-4, where the full
 matrix's onset is soft.  So omega* counts as **resolved** when omega*_KPM >= RESOLVED x

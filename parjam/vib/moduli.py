@@ -256,7 +256,7 @@ def response_solver(comm, D, P, distributed=None):
     overlap), each an incomplete Cholesky ICC(0) of the rank's diagonal block of P (sub-solver
     prefix ``moduli_sub_``).  Block Jacobi keeps no coarse operators and no factor fill, so its
     memory per rank does not grow with the rank count at a fixed number of particles per rank
-    (docs/bench-moduli-weak.md); its iterations grow with the rank count (one block
+    (docs/results/benchmarks.md); its iterations grow with the rank count (one block
     per rank), hence the larger cap.  Options (-moduli_pc_type gamg, -moduli_sub_pc_type ...)
     override both choices."""
     PETSc = env.petsc()

@@ -1,7 +1,7 @@
 """Observables of vibrational spectra: the density of states D(omega), its plateau D0 and the
 onset frequency omega*, and per-mode participation ratios and transverse/longitudinal sums.
 
-Conventions (docs/spectra.md):
+Conventions (docs/howto/spectra.md):
 
 - frequencies omega = sign(lambda) sqrt|lambda| of the eigenvalues lambda = omega^2 (unit masses);
 - D(omega) is normalised *per mode*: counts / (n_modes * bin width) with n_modes = d N' - d, the

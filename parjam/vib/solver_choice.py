@@ -1,7 +1,7 @@
 """Which solver computes which spectrum: the one policy that ``parjam modes --method auto``
 (parjam.vib.spectrum.choose_method), scenes (parjam.study.plan) and ``parjam lengths`` follow.
 
-The crossovers are the ones measured in docs/speed-accuracy.md (3D, 1 rank, against the dense
+The crossovers are the ones measured in docs/results/speed-accuracy.md (3D, 1 rank, against the dense
 LAPACK truth on the same packings):
 
 - the whole spectrum costs dof^3 by dense LAPACK: 7 s at 3000 dof, 50 s at 6100, 410 s and

@@ -1,7 +1,7 @@
 """Vibrational spectra of the dynamical matrices of Eq. (1): the full D = M + M', the
 relaxed-spring M (Section III) and the stress term M' alone, for the non-rattlers of a packing.
 
-Methods (docs/spectra.md):
+Methods (docs/howto/spectra.md):
 
 - ``dense``: LAPACK (scipy.linalg.eigh) on the dense matrix with the d uniform translations moved
   above the spectrum (Hotelling deflation): the exact small-system reference;
@@ -224,7 +224,7 @@ class Spectrum:
 
 def choose_method(method, dof, window, k=None, n_modes=None, tol=None):
     """``auto``: the choice of parjam.vib.solver_choice (the crossovers measured in
-    docs/speed-accuracy.md) for the k lowest modes or a window (a window wins when both are
+    docs/results/speed-accuracy.md) for the k lowest modes or a window (a window wins when both are
     given); any other method is returned as it is."""
     if method != "auto":
         return method
@@ -426,7 +426,7 @@ def sinvert_eps(A, k, target, abstol, deflation):
     eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
     eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
     # ncv = 1.5 k (SLEPc's default is 2 k): fewer solves in total at k = 100 (measured in
-    # docs/bench-spectra.md); -modes_eps_ncv overrides
+    # docs/results/benchmarks.md); -modes_eps_ncv overrides
     eps.setDimensions(nev=k, ncv=k + max(k // 2, 20))
     eps.setTarget(target)
     eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)

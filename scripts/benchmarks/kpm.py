@@ -5,7 +5,7 @@ Limit: KPM is nothing but sparse matrix-vector products (moments / 2 per probe, 
 Lanczos bounds): its time over the time of its MatMult calls (``-log_view``) says what the rest
 costs.  Reference: every eigenvalue by numpy's dense eigvalsh of the matrix the numpy peer
 builds from the file (its time beside KPM's), and D0 and omega* of that spectrum from a dense
-``parjam modes`` of every mode (the definitions of docs/spectra.md).  Accuracy: the L1
+``parjam modes`` of every mode (the definitions of docs/howto/spectra.md).  Accuracy: the L1
 distance of the per-mode D(omega) on KPM's bins, the relative error of D0 and the error of
 omega*.
 """

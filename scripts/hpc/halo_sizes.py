@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Halo of the force evaluation: how many non-owned particles a rank fetches per evaluation
 (the halo a ForceField builds for its Verlet list) when N particles are split over P ranks, for the scaling model of
-docs/scaling.md.  No MPI needed: the ranks' contiguous blocks of the cell-ordered numbering
+docs/explanation/scaling.md.  No MPI needed: the ranks' contiguous blocks of the cell-ordered numbering
 (parjam.pack.randomstart.spatial_order, hessian.row_range) are formed here, on uniform random positions
 at phi (the halo is geometry: the jammed structure changes it little).
 

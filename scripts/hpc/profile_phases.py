@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Per-phase costs of parjam on one packing, for the scaling model of docs/scaling.md.
+"""Per-phase costs of parjam on one packing, for the scaling model of docs/explanation/scaling.md.
 
     source scripts/mpi-env
     $PARJAM_MPIRUN -n 2 .venv/bin/python scripts/hpc/profile_phases.py P.h5 --json out.json \

@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
 """Fit per-phase cost models to scripts/hpc/profile_phases.py records and extrapolate them to
-10^6 - 10^7 particles on 64 - 1024 ranks (the tables of docs/scaling.md).
+10^6 - 10^7 particles on 64 - 1024 ranks (the tables of docs/explanation/scaling.md).
 
     .venv/bin/python scripts/hpc/scaling_model.py bench-out/speed/profile.json \
-        --md docs/scaling.md
+        --md docs/explanation/scaling.md
 
 Model (each phase, N particles in 3D, P ranks).  Per-rank compute rates come from the 1-rank
 runs; the 2-rank runs are listed, but on a 2-core machine shared with other jobs they measure

@@ -1,4 +1,4 @@
-"""First-contact frictions (issue 35): progress stamped in world rank 0's time order and members
+"""First-contact frictions: progress stamped in world rank 0's time order and members
 counted from 1, units in the CLI's tables, a warning when -modes_eps_nev contradicts --k."""
 
 import os

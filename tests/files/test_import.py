@@ -146,7 +146,7 @@ BAD = {
     "twotypes.data": "header\n\n2 atoms\n0 4 xlo xhi\n0 4 ylo yhi\n0 4 zlo zhi\n\nAtoms # atomic\n\n"
                      "1 1 0 0 0\n2 2 2 2 2\n",
     "garbage.dump": "ITEM: TIMESTEP\n0\nITEM: NUMBER OF ATOMS\nmany\n",
-    # issue 36: no particles (a StopIteration traceback before), non-periodic or impossible
+    # no particles (a StopIteration traceback before), non-periodic or impossible
     # extended XYZ headers, and 7 columns under a bare Atoms header (sphere or full?)
     "zeroatoms.data": "header\n\n0 atoms\n0 4 xlo xhi\n0 4 ylo yhi\n0 4 zlo zhi\n\nAtoms\n\n",
     "negatoms.data": "header\n\n-3 atoms\n0 4 xlo xhi\n0 4 ylo yhi\n0 4 zlo zhi\n\nAtoms\n\n"
@@ -201,7 +201,7 @@ REASONS = {"zeroatoms.data": "0 atoms: a packing needs particles",
 
 
 def test_issue36_importer_cases_say_why(tmp_path):
-    """Each hostile file of issue 36 is refused with its reason (the bare full-style header used
+    """Each hostile file of the third hostile round is refused with its reason (the bare full-style header used
     to be read as sphere, pbc="F F F" as a 2D packing, dimension=7 accepted).  The reader itself,
     each rank on its own file."""
     from parjam.errors import ParjamError

@@ -33,7 +33,7 @@ def _h5(path):
 
 
 def _mdanalysis_universe(path, n):
-    """The documented call (docs/file-format.md)."""
+    """The documented call (docs/reference/file-format.md)."""
     import MDAnalysis as mda
 
     with warnings.catch_warnings():

@@ -1,4 +1,4 @@
-"""Units on every dataset (docs/file-format.md, "Units"): the files of `pack`, `modes` and `dos`
+"""Units on every dataset (docs/reference/file-format.md, "Units"): the files of `pack`, `modes` and `dos`
 are walked dataset by dataset and each must be in the table below, with its unit attribute
 (H5MD notation, fixed-length ASCII) or none for a dimensionless one; the H5MD units module is
 declared.  A dataset that nobody classified fails the test."""

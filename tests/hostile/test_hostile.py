@@ -39,7 +39,7 @@ POS = "particles/all/position/value"
 DIAM = "particles/all/diameter"
 EDGES = "particles/all/box/edges"
 
-# PARJAM_HYPOTHESIS_EXAMPLES raises the count for a thorough run (docs/reliability.md)
+# PARJAM_HYPOTHESIS_EXAMPLES raises the count for a thorough run (docs/explanation/reliability.md)
 EXAMPLES = int(os.environ.get("PARJAM_HYPOTHESIS_EXAMPLES", "25"))
 HOSTILE = settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

@@ -1,4 +1,4 @@
-"""Hostile outputs (parjam.files.outputs, docs/reliability.md "Outputs"): every command that writes,
+"""Hostile outputs (parjam.files.outputs, docs/explanation/reliability.md "Outputs"): every command that writes,
 given an output that would destroy something or cannot be written, ends with one line
 ``parjam: error: ...`` and a non-zero status *before any work*, and leaves every input, device
 and directory as it was.  A full disk during the write is one line, no partial file, no crash at

@@ -1,4 +1,4 @@
-"""Hostile sizes and results (docs/reliability.md, "Sizes and the machine check", "Results"):
+"""Hostile sizes and results (docs/explanation/reliability.md, "Sizes and the machine check", "Results"):
 
 - every size option a user can give (moments, probes, bins, k, N, members, samples, subdivide,
   ncut, the kmax grid) has an upper bound with its reason: beyond it one line, before any work
@@ -178,7 +178,7 @@ def test_pack_and_run_refuse_plans_that_do_not_fit(tmp_path, monkeypatch):
 
 def test_the_pack_estimate_covers_the_measured_stability_check():
     """The machine check's pack model against the peaks measured for the stability check alone
-    (docs/bench-inertia-memory.md, 3D, 1 rank; 2D: docs/scaling.md), within its factor of 2."""
+    (docs/results/benchmarks.md, 3D, 1 rank; 2D: docs/explanation/scaling.md), within its factor of 2."""
     from parjam import resources
 
     for n, measured in ((4096, 161), (32768, 896), (64000, 2239)):

@@ -64,7 +64,7 @@ def test_hertz_and_alpha_3(alpha, n):
     """p ~ dphi^(alpha - 1) between dphi = 1e-4 and 1e-2 (one configuration: exponent within
     0.1); at dphi = 1e-8 the contact forces are ~dphi^(alpha-1) ~ 1e-16, far below the absolute
     tolerance: the returned state is balanced further, relative to its contact forces
-    (parjam.pack.packing.Jammer.polish; issue 20), and a poor balance would still be flagged."""
+    (parjam.pack.packing.Jammer.polish), and a poor balance would still be flagged."""
     phi_c, packs = make_jammed(2, n, [1e-8, 1e-4, 1e-2], seed=2, alpha=alpha)
     nets = [_check_state(p, dp) for p, dp in zip(packs, [1e-8, 1e-4, 1e-2])]
     slope = np.log(nets[2].pressure / nets[1].pressure) / np.log(100.0)

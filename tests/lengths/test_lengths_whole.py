@@ -1,4 +1,4 @@
-"""The l* cubes counted by all the ranks together (parjam.lengths.whole, issue 19): every number
+"""The l* cubes counted by all the ranks together (parjam.lengths.whole): every number
 of every cube equal to today's count on one rank (parjam.lengths.cubes on COMM_SELF), on 1, 2
 and 3 ranks, 2D and 3D, for the cube of edge L (the whole packing, every face cut) and cubes
 around L/2; and the distributed pruning and pieces (parjam.net.active.prune, .components) against

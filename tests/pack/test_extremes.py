@@ -1,4 +1,4 @@
-"""Honest at the extremes (issue 20): phi_c refined from the jammed side so that p / dphi is
+"""Honest at the extremes: phi_c refined from the jammed side so that p / dphi is
 constant down to dphi = 1e-9; every returned state a stable minimum (a constructed saddle is
 detected, against a dense eigenvalue count, and relaxed to a stable minimum, by the escapes
 or, with those switched off, by the compression cycle, which a checkpointed resume repeats); a

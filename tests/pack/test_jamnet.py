@@ -1,5 +1,5 @@
 """The packing protocol's per-state network and stability check on the slabs (parjam.pack.jamnet,
-parjam.pack.stability; issue 18) against the serial references: network.analyze's numbers, the
+parjam.pack.stability) against the serial references: network.analyze's numbers, the
 dense dynamical matrix of the non-rattlers and its LAPACK eigenvalues, and the serial energies
 along a line.  The network's sums over contacts are exact (math.fsum of the serial terms) on
 any number of ranks; the rest bit-identical on one rank, to round-off on 2 ranks (the MPI pass)

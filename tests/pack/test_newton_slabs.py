@@ -1,5 +1,5 @@
-"""Newton's Verlet list, Hessian and steps without a gather (parjam.pack.forces.ForceField.slab_pairs,
-issue 18): on several ranks the pairs found on the slabs are exactly the serial cell search's,
+"""Newton's Verlet list, Hessian and steps without a gather (parjam.pack.forces.ForceField.slab_pairs):
+on several ranks the pairs found on the slabs are exactly the serial cell search's,
 the assembled Hessian is the serial one, and damped Newton steps from a perturbed jammed state
 end where the serial ones end, to round-off; 2 ranks in the MPI pass, 3 through one serial
 test."""

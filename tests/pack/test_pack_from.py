@@ -1,4 +1,4 @@
-"""``parjam pack --from FILE`` by rows (parjam.pack.filestart, issue 18): each rank reads only its own
+"""``parjam pack --from FILE`` by rows (parjam.pack.filestart): each rank reads only its own
 rows of the file, and what the command makes of them is what the whole-file start made (main's
 ``importer.from_file`` and ``Jammer(comm, pack)``): the description (d, N, phi bitwise, the
 dispersity label and ratio), the Jammer's block rows, the files of the protocol (bitwise on one

@@ -29,7 +29,7 @@ COMM = MPI.COMM_WORLD
 
 
 def serial_start(d, n, phi, dispersity, ratio, rng):
-    """The serial random start as parjam made it before the row blocks (session 12): every
+    """The serial random start as parjam made it before the row blocks: every
     draw of the stream at once, then a global stable argsort of the cell keys."""
     if dispersity == "poly":
         diam, species = 1.0 + (ratio - 1.0) * rng.random(n), np.zeros(n, dtype=np.int32)

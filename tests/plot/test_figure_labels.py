@@ -1,4 +1,4 @@
-"""What every figure says about itself (issue 35, item 4): a title naming N, d and the state,
+"""What every figure says about itself: a title naming N, d and the state,
 a reduced unit on every dimensionful axis, readable log ticks, cumulative counts for the lowest
 k modes, legends that say what c and the bracketed numbers are.  Each figure is caught as it is
 saved (matplotlib's Figure.savefig wrapped) and its texts read; the figures of the 2D N = 128

@@ -1,5 +1,5 @@
 """The overlap function f(x) of the soft modes (parjam.softmodes.overlap_function; Wyart et al.
-2005, Sec. III), for both cut geometries of docs/reproduction.md section 12 (one plane at
+2005, Sec. III), for both cut geometries of docs/results/reproduction.md section 12 (one plane at
 x = L/2, and all faces of the cube: ``subdivide = 1``) on the isostatic reference packing.
 
 The definition parjam uses: f(u) = n_soft^-1 sum_b sum_{i: u_i in slab} |dR_i,b|^2 / du, u = x/L

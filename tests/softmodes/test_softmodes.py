@@ -280,7 +280,7 @@ def test_trial_energies_decrease_like_one_over_L_squared(case):
     mean (basis independent) falls as L^-2; the orthonormalised trial modes with e > e0 stay
     below omega_L^2 and their mean energy omega_t^2 falls at least as L^-1.2 (in 2D it also
     carries the slow decrease of the extended fraction q'/q at these sizes, see
-    docs/softmodes.md).  Without the sine modulation vanishing on the planes the cut contacts
+    docs/explanation/algorithms.md).  Without the sine modulation vanishing on the planes the cut contacts
     would add an L-independent energy and both slopes would be near 0 or -1.
 
     Physics over many packings: each rank runs it on COMM_SELF (the distributed path is

@@ -97,7 +97,7 @@ small_dof = 0
                 rec = part[lab]
                 w, n_modes = dense_omega(runner.pack_path(system, m, lab), st.matrix)
                 d0, wstar, _ = observables.dos_summary(w, n_modes)
-                # docs/speed-accuracy.md: D0 within 0.1 - 1 % at N = 1024 with 8 - 32 probes;
+                # docs/results/speed-accuracy.md: D0 within 0.1 - 1 % at N = 1024 with 8 - 32 probes;
                 # N' ~ 250 has 4x the stochastic error
                 assert rec["D0"] == pytest.approx(d0, rel=0.04)
                 if lab == "dphi1.0e-02":  # KPM alone, omega* resolved (N = 1024: 3 - 5 %)

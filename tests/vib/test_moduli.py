@@ -190,7 +190,7 @@ def test_one_vs_all_ranks_and_convergence(packs, results, world, d):
 
 @pytest.mark.parametrize("d", [2, 3])
 def test_block_jacobi_preconditioner(packs, world, d):
-    """The preconditioner of several ranks (block Jacobi, one ICC(0) block per rank; issue 19),
+    """The preconditioner of several ranks (block Jacobi, one ICC(0) block per rank),
     forced on every communicator (one block on one rank): the same tensors as the factorisation
     on one rank, whose agreement with the dense pseudo-inverse is tested above."""
     ref = moduli.compute(packs[d], comm=SELF)

@@ -310,7 +310,7 @@ def test_auto_method_choice():
     assert spectrum.choose_method("auto", 3001, None) == "sinvert"
     assert spectrum.choose_method("auto", 3001, (0.0, 0.1)) == "slice"
     assert spectrum.choose_method("auto", 3001, (0.0, 0.1), k=5, n_modes=2998) == "slice"
-    # the k lowest modes between SMALL_DOF and PARTIAL_DENSE_MAX_DOF (docs/speed-accuracy.md)
+    # the k lowest modes between SMALL_DOF and PARTIAL_DENSE_MAX_DOF (docs/results/speed-accuracy.md)
     assert spectrum.choose_method("auto", 1000, None, k=10, n_modes=997) == "sinvert"
     assert spectrum.choose_method("auto", 1000, None, k=150, n_modes=997) == "dense"
     assert spectrum.choose_method("auto", 1000, None, k=10, n_modes=997, tol=1e-13) == "dense"
