@@ -17,7 +17,8 @@ estimates (from states at decreasing dphi) agree; their difference is the resolu
 recorded with every state.  Every returned state is also checked to be a stable minimum
 (parjam.pack.stability) and, where it is a saddle, pushed out of it along its softest direction and
 minimised again, or else taken through a compression cycle (``stabilise``).  A ladder step that
-unjams ends the ladder with ``LadderUnjammed``, which carries the jammed states made before it.
+unjams is made again in smaller sub-steps, Newton first (``rejam``); if it still unjams,
+``LadderUnjammed`` ends the ladder, carrying the jammed states made before it.
 
 On the decomposition: the Jammer holds the state in its force field's PETSc block
 rows (positions, diameters, species of this rank's rows; box and constants), never all N of
@@ -25,7 +26,7 @@ them, and starts from them (parjam.pack.randomstart.start_rows makes a random st
 Packing is cut into them).  Every per-state number comes from parjam.pack.jamnet on the slabs
 (``network``), the stability check and the escapes from parjam.pack.stability on the same
 half-edges, Newton from the force field's distributed neighbour list; a State keeps its block
-rows (``state_rows``, parjam.pack.staterows), from which parjam.pack.ensemble writes its file by row
+rows (``state_rows``, parjam.pack.staterows), from which parjam.study.members writes its file by row
 blocks.  On one rank every number is the serial one bitwise.
 
 (Over 500 lines: the Jammer is one state machine over one force field and its checkpoint; every
