@@ -147,7 +147,7 @@ def no_work(monkeypatch):
     (the output checks must come first)."""
     from parjam.files import h5md as pio, modes_io
     from parjam.study import members
-    from parjam.commands import run as runmod
+    from parjam.study.runner import Runner
 
     def forbidden(*a, **k):
         raise AssertionError("work started before the outputs were checked")
@@ -155,7 +155,7 @@ def no_work(monkeypatch):
     monkeypatch.setattr(pio, "read_packing", forbidden)
     monkeypatch.setattr(modes_io, "read_spectrum", forbidden)
     monkeypatch.setattr(members, "pack_member", forbidden)
-    monkeypatch.setattr(runmod.Runner, "run", forbidden)
+    monkeypatch.setattr(Runner, "run", forbidden)
 
 
 def make_device(path):
