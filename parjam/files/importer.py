@@ -78,6 +78,9 @@ def load(path, fmt=None, diameters=None, dim=None, alpha=2.0, atom_style=None):
     n, d = pos.shape
     species = (np.zeros(n, np.int32) if raw.species is None
                else np.asarray(raw.species, np.int64).astype(np.int32))
+    if species.shape != (n,):
+        raise ParjamError(f"{path}: species of shape {species.shape} for {n} particles (one "
+                          f"per particle)")
     diam = raw.diam
     if diam is None:
         diam = _diameters_by_species(path, species, diameters)
@@ -129,7 +132,8 @@ def _check(path, pos, diam, edges):
     if n < 2:
         raise ParjamError(f"{path}: a packing needs at least 2 particles, got {n}")
     if diam.shape != (n,):
-        raise ParjamError(f"{path}: {len(diam)} diameters for {n} particles")
+        got = f"{diam.size} diameters" if diam.ndim == 1 else f"diameters of shape {diam.shape}"
+        raise ParjamError(f"{path}: {got} for {n} particles (one per particle)")
     for name, arr in (("positions", pos), ("diameters", diam), ("box edges", edges)):
         if not np.all(np.isfinite(arr)):
             raise ParjamError(f"{path}: {name} contain NaN or inf")
