@@ -283,12 +283,12 @@ def test_a_window_past_the_spectrum_holds_every_mode_once(shared_tmp):
 
     from parjam.files import modes_io
     from parjam.files.h5md import read_packing
-    from parjam.net.network import analyze
-    from parjam.vib import spectrum
+    from parjam.testing.reference import dense_system
+    from parjam.vib.dense import dense_matrix
 
     path = os.path.join(DATA, hostile.PACKING)
-    system = spectrum.active_system(read_packing(path), analyze(read_packing(path)))
-    H = spectrum.dense_matrix(system, "full")
+    system = dense_system(read_packing(path))
+    H = dense_matrix(system, "full")
     lam = scipy.linalg.eigvalsh(H)[system.d:]  # the d translations are the lowest (zero)
     norm = np.abs(H).sum(axis=1).max()
     for bounds in ("0,100", "0,1e300"):
