@@ -10,9 +10,13 @@ has an eigenvalue below -s, where s is a small multiple of its round-off level
 and are deflated.  A state is *stable* when D has no eigenvalue below -s and it has Nc >= Nc_iso
 contacts among its non-rattlers (a rigid network).
 
-Two ways to answer, chosen by ``-stability_method`` (``METHODS``):
+Two ways to answer, chosen by ``-stability_method`` (``METHODS``); the default ``auto`` takes the
+exact inertia for matrices of at most ``-stability_auto_max_dof`` rows (AUTO_MAX_DOF), where its
+factor is smaller than the engine's own arrays and one factorisation is far cheaper than the
+thousands of Lanczos steps a state near jamming needs (3D N = 4096 at p = 1.4e-8: 0.8 s against
+17,000 steps and 44 s of CPU, docs/results/stability.md), and the Lanczos test above:
 
-- ``lanczos`` (default): parjam.vib.lowest's Lanczos test on D, in O(N/P) memory per rank (the
+- ``lanczos``: parjam.vib.lowest's Lanczos test on D, in O(N/P) memory per rank (the
   matrix and four vectors of this rank's rows).  "Unstable" is certified by a witness vector whose
   Rayleigh quotient lies below -2 s (Courant-Fischer); "stable" by the Lanczos-polynomial bound:
   the probability that an eigenvalue below -s was missed is at most ``-stability_lanczos_delta``
@@ -57,7 +61,10 @@ from parjam.net.system import pair_separation, wrap
 SHIFT_ULPS = 100.0  # s = SHIFT_ULPS * eps_machine * ||D||_inf
 ESCAPE_MAX = 0.05  # escape searches stop at this displacement (in smallest diameters)
 PREFIX = "stability_"
-METHODS = ("lanczos", "inertia")
+METHODS = ("auto", "lanczos", "inertia")
+#: ``auto`` takes the exact inertia up to this many rows of D (3D N ~ 8300, 2D N = 12500): its
+#: factor there is ~100 MB (745 MB x (N / 32768)^1.5 in 3D), less than the engine's arrays
+AUTO_MAX_DOF = 25000
 #: the exact inertia decides where the Lanczos test is inconclusive up to this many rows of D:
 #: 98,304 rows (N = 32768 in 3D) took 745 MB in the factorisation (docs/results/stability.md)
 EXACT_MAX_DOF = 100000
@@ -91,21 +98,31 @@ class Curvature:
 
 @dataclass
 class Settings:
-    """The check's options (prefix ``stability_``): -stability_method, -stability_exact_max_dof
-    and the Lanczos test's -stability_lanczos_* (parjam.vib.lowest.Settings)."""
+    """The check's options (prefix ``stability_``): -stability_method, -stability_exact_max_dof,
+    -stability_auto_max_dof and the Lanczos test's -stability_lanczos_* (lowest.Settings)."""
 
-    method: str = "lanczos"
+    method: str = "auto"
     exact_max_dof: int = EXACT_MAX_DOF
     lanczos: lowest.Settings = None
+    auto_max_dof: int = AUTO_MAX_DOF
 
     @classmethod
     def from_options(cls):
         opts = env.petsc().Options(PREFIX)
-        method = opts.getString("method", "lanczos")
+        method = opts.getString("method", "auto")
         if method not in METHODS:
             raise ParjamError(f"-{PREFIX}method {method}: choose from {', '.join(METHODS)}")
+        auto = opts.getInt("auto_max_dof", AUTO_MAX_DOF)
+        if auto < 0:
+            raise ParjamError(f"-{PREFIX}auto_max_dof {auto}: must be >= 0")
         return cls(method, opts.getInt("exact_max_dof", EXACT_MAX_DOF),
-                   lowest.Settings.from_options(PREFIX))
+                   lowest.Settings.from_options(PREFIX), auto)
+
+    def method_for(self, dof):
+        """The method that checks a matrix of ``dof`` rows: ``auto`` resolved by its size."""
+        if self.method == "auto":
+            return "inertia" if dof <= self.auto_max_dof else "lanczos"
+        return self.method
 
 
 @dataclass
@@ -185,7 +202,7 @@ def check(comm, net, settings=None):
     cfg = settings or Settings.from_options()
     H = active_hessian(net)
     s = shift_for(H.norm)
-    if cfg.method == "inertia":
+    if cfg.method_for(H.n * H.d) == "inertia":
         return Curvature(count_below(comm, H, -s), s, net.excess, net.n_active)
     res = lanczos_test(comm, H, s, cfg.lanczos)
     args = (s, net.excess, net.n_active)

@@ -276,7 +276,33 @@ def test_options_choose_the_method():
     finally:
         for k in ("stability_method", "stability_lanczos_max_it"):
             opts.delValue(k)
-    assert stability.Settings.from_options().method == "lanczos"
+    assert stability.Settings.from_options().method == "auto"
+
+
+def test_auto_takes_the_exact_inertia_up_to_its_size():
+    """-stability_method auto (the default): the exact inertia for matrices of at most
+    -stability_auto_max_dof rows, the Lanczos test above; both give the same verdict."""
+    cfg = stability.Settings()
+    assert cfg.method == "auto"
+    assert cfg.method_for(stability.AUTO_MAX_DOF) == "inertia"
+    assert cfg.method_for(stability.AUTO_MAX_DOF + 1) == "lanczos"
+    assert stability.Settings("lanczos").method_for(10) == "lanczos"
+    assert stability.Settings("inertia").method_for(10**9) == "inertia"
+    PETSc = env.petsc()
+    opts = PETSc.Options()
+    try:
+        opts["stability_auto_max_dof"] = -1
+        with pytest.raises(ParjamError, match="stability_auto_max_dof"):
+            stability.Settings.from_options()
+        opts["stability_auto_max_dof"] = 77
+        assert stability.Settings.from_options().auto_max_dof == 77
+    finally:
+        opts.delValue("stability_auto_max_dof")
+    net = jamnet.from_packing(WORLD, read_packing(os.path.join(DATA, "soft_d3_N256_m0.h5")))
+    small = stability.check(WORLD, net, stability.Settings("auto", lanczos=lowest.Settings()))
+    large = stability.check(WORLD, net, stability.Settings("auto", 0, lowest.Settings(), 0))
+    assert small.method == "inertia" and large.method == "lanczos"
+    assert small.stable == large.stable and small.n_negative == large.n_negative
 
 
 @pytest.mark.serial
