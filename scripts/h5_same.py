@@ -16,7 +16,8 @@ import sys
 import h5py
 import numpy as np
 
-RUN_DEPENDENT = {"seconds", "command_line", "ranks", "petsc_options", "solver_info", "versions"}
+RUN_DEPENDENT = {"seconds", "command_line", "ranks", "petsc_options", "solver_info", "versions",
+                 "peak_rss_mb", "seconds_count", "seconds_null_space", "seconds_analysis"}
 
 
 def walk(f):

@@ -8,7 +8,7 @@ import numpy as np
 from parjam import units
 from parjam.commands import parse_pair
 from parjam.errors import ParjamError
-from parjam.vib.solver_choice import MATRICES, METHODS
+from parjam.vib.solver_choice import MATRICES, METHODS, check_tol
 
 EXIT_INCOMPLETE = 4  # some requested pairs did not converge to the tolerance
 MAX_BINS = 1_000_000  # bins cost memory linearly; 1e6 is finer than any spectrum needs
@@ -41,7 +41,8 @@ def add_parser(sub):
                    "docs/results/speed-accuracy.md)")
     p.add_argument("--vectors", action="store_true", help="store the eigenvectors (K, N', d)")
     p.add_argument("--tol", type=float, default=1e-10,
-                   help="accept pairs with ||D v - lambda v|| / ||D||_inf <= TOL (1e-10)")
+                   help="accept pairs with ||D v - lambda v|| / ||D||_inf <= TOL (1e-10; "
+                   "from 1e-15, the round-off, to 1e-2)")
     p.add_argument("--target", type=float,
                    help="sinvert target (default -1e-9 ||D||_inf, just below the zero cluster)")
     p.add_argument("--bins", type=int, help="D(omega) bins (default: about the square root of "
@@ -80,6 +81,7 @@ def validate(args):
         raise ParjamError("--target must be finite")
     if args.method == "slice" and args.window is None:
         raise ParjamError("--method slice needs --window WA,WB")
+    check_tol(args.tol)
 
 
 def option_conflicts(args):

@@ -269,7 +269,7 @@ def _protocol(raw, path):
 
 def _solver(raw, path):
     t = Table(raw, "solver", path)
-    out = {"tol": t.float("tol", 1e-10, lo=0.0, hi=1e-2, lo_open=True),
+    out = {"tol": t.float("tol", 1e-10, lo=solver_choice.TOL_MIN, hi=solver_choice.TOL_MAX),
            "dense_max_dof": t.int("dense_max_dof", solver_choice.WHOLE_MAX_DOF, lo=1,
                                   hi=40_000),
            "small_dof": t.int("small_dof", solver_choice.PARTIAL_DENSE_MAX_DOF, lo=0)}

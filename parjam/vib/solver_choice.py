@@ -22,6 +22,16 @@ from parjam.net.blocks import KINDS
 
 METHODS = ("auto", "dense", "sinvert", "slice")  # parjam modes --method
 MATRICES = KINDS  # the matrices of Eq. (1) a spectrum is computed for: full, relaxed, stress
+#: the residual tolerances a spectrum accepts: ||D v - lambda v|| / ||D||_inf cannot go below the
+#: round-off of double precision (~1e-16 per entry, summed over a row), nor mean much above 1e-2
+TOL_MIN, TOL_MAX = 1e-15, 1e-2
+
+
+def check_tol(tol):
+    """ParjamError unless TOL_MIN <= tol < TOL_MAX."""
+    if not TOL_MIN <= tol < TOL_MAX:
+        raise ParjamError(f"--tol must lie in [{TOL_MIN:g}, {TOL_MAX:g}) (a residual relative to "
+                          f"||D|| below ~1e-15 is round-off), got {tol:g}")
 
 WHOLE_MAX_DOF = 12000  # the whole spectrum by dense LAPACK up to this many degrees of freedom
 PARTIAL_DENSE_MAX_DOF = 3000  # the k lowest modes or a window: never dense above this

@@ -283,8 +283,7 @@ def compute(comm, system, kind="full", *, k=None, window=None, method="auto", to
         raise ParjamError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     if (k is None) == (window is None):
         raise ParjamError("give either a number of modes (--k) or a frequency window (--window)")
-    if not 0 < tol < 1e-2:
-        raise ParjamError(f"tolerance must lie in (0, 1e-2), got {tol}")
+    solver_choice.check_tol(tol)
     if k is not None:
         check_k(k, system)
     method = choose_method(method, system.dof, window, k, system.n_modes, tol)
