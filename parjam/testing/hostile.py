@@ -8,7 +8,7 @@ numbers) and the new ones found while fixing them.  tests/hostile/test_hostile_r
 every case; ``scripts/hostile_sweep.py`` runs them against any parjam (``--pythonpath`` of an
 older checkout) and prints the tally.
 
-Why one file of ~450 lines: the cases are data, one small builder each, kept together so that
+Why one file of ~580 lines: the cases are data, one small builder each, kept together so that
 the test and the sweep run exactly the same list.
 """
 
