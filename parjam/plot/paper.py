@@ -7,7 +7,7 @@ A results directory holds one subdirectory per bundled scene (``SCENES``: ``pape
 its laws (parjam.study.fits) into a ``fits`` dict and is drawn to ``repro_<name>.png``.
 ``parjam plot RESULTS --img DIR`` and ``scripts/reproduce.py`` call :func:`reproduce`.
 
-Why one file of ~640 lines: every figure is a small function next to the laws it fits, and the
+Why one file of ~710 lines: every figure is a small function next to the laws it fits, and the
 ``FIGURES`` table that drives them reads best in one place.
 """
 

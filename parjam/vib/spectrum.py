@@ -21,7 +21,7 @@ SLEPc/PETSc objects use the options prefix ``modes_`` (``-modes_eps_view``,
 ``-modes_st_mat_mumps_icntl_7 5``, ``-modes_eps_krylovschur_partitions 2`` ...).
 The choice of method for ``auto`` is parjam.vib.solver_choice's.
 
-Why one file of ~600 lines: the three methods return the same :class:`Spectrum` with the same
+Why one file of ~650 lines: the three methods return the same :class:`Spectrum` with the same
 checks (residuals, zero cluster, inertia counts) and are tested against each other; the system
 (this rank's share of parjam.net.active), the dense path (its linear algebra in
 parjam.vib.dense), the SLEPc set-up and the collection of pairs are its sections.

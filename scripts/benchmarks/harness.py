@@ -66,6 +66,11 @@ class Run:
     def peak(self):
         return max(self.rss_mb) if self.rss_mb else float("nan")
 
+    def measured(self):
+        """The columns every benchmark's row takes from a run: wall seconds, the largest peak
+        RSS of a rank and every rank's (MB)."""
+        return {"seconds": self.seconds, "peak_mb": self.peak, "rss_mb": self.rss_mb}
+
     @property
     def error(self):
         """A failed run's exit code and message: parjam's own last line (``parjam: ...``) if

@@ -81,7 +81,7 @@ def parjam(path, tree, ranks, what, opts, work, timeout):
     log = out + ".log"
     res = harness.run(["parjam", "modes", path, "--matrix", "full", "--out", out, "-q", *what,
                        *opts, "-log_view", ":" + log], ranks, tree, timeout)
-    row = {"seconds": res.seconds, "peak_mb": res.peak, "rss_mb": res.rss_mb}
+    row = res.measured()
     if not res.ok:  # exit 4: written, but some pairs missed the tolerance (kept in the row)
         row["error"] = res.error
         if not os.path.exists(out):

@@ -73,8 +73,7 @@ def run(args, trees, work):
                                        "-log_view", ":" + out + ".log"], ranks, tree,
                                       args.timeout)
                     row = {"packing": harness.label(spec), "variant": label,
-                           "tree": tree_label, "ranks": ranks, "seconds": res.seconds,
-                           "peak_mb": res.peak, "rss_mb": res.rss_mb}
+                           "tree": tree_label, "ranks": ranks, **res.measured()}
                     if not res.ok:
                         rows.append(dict(row, error=res.error))
                         continue

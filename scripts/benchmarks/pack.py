@@ -68,8 +68,7 @@ def run(args, trees, work):
                                        *extra, "-log_view", ":" + log], ranks, tree,
                                       args.timeout)
                     row = {"variant": label, "tree": tree_label, "n": n, "ranks": ranks,
-                           "seconds": res.seconds, "peak_mb": res.peak, "rss_mb": res.rss_mb,
-                           "peer_step_s": peer}
+                           **res.measured(), "peer_step_s": peer}
                     if not res.ok:
                         rows.append(dict(row, error=res.error))
                         continue
