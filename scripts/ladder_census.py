@@ -2,7 +2,8 @@
 """How often a ladder step unjams, is made again and recovered, or stops its member: runs
 ``parjam pack`` on an ensemble and tallies each member's outcome from its files and the
 manifest (a recovered state carries ``rejammed = 1`` in /parameters; a stopped member is in the
-manifest's ``stopped``).
+manifest's ``stopped``), and the stability check's verdicts on the states (``stable`` and
+``escapes`` in /parameters).
 
     python scripts/ladder_census.py --dim 3 --n 256 --members 50 --ranks 2 --out census-3d-256
     python scripts/ladder_census.py --dim 2 --n 256 --dispersity bi --members 50 --out census-2d
@@ -23,18 +24,25 @@ import h5py
 
 
 def outcome(out, members):
-    """(clean, recovered, stopped) member lists from a finished run's directory."""
+    """(clean, recovered, stopped) member lists from a finished run's directory, and the
+    stability check's verdicts on its states: how many states, how many certified stable,
+    and how many saddles the check found and escaped on the way (each state's /parameters)."""
     with open(os.path.join(out, "manifest.json")) as fh:
         man = json.load(fh)
     stopped = sorted(int(m) for m in man.get("stopped", {}))
     recovered = set()
+    verdicts = {"states": 0, "stable": 0, "escapes": 0}
     for path in glob.glob(os.path.join(out, "member*_*.h5")):
         with h5py.File(path, "r") as f:
-            if int(f["parameters"].attrs.get("rejammed", 0)):
+            attrs = f["parameters"].attrs
+            if int(attrs.get("rejammed", 0)):
                 recovered.add(int(os.path.basename(path)[6:10]))
+            verdicts["states"] += 1
+            verdicts["stable"] += int(attrs.get("stable", 0))
+            verdicts["escapes"] += int(attrs.get("escapes", 0))
     recovered = sorted(recovered - set(stopped))
     clean = [m for m in range(members) if m not in recovered and m not in stopped]
-    return clean, recovered, stopped
+    return clean, recovered, stopped, verdicts
 
 
 def main():
@@ -59,15 +67,17 @@ def main():
     seconds = time.time() - t0
     if run.returncode not in (0, 3):
         sys.exit(f"ladder_census: parjam pack failed ({run.returncode}): {run.stderr[-2000:]}")
-    clean, recovered, stopped = outcome(args.out, args.members)
+    clean, recovered, stopped, verdicts = outcome(args.out, args.members)
     result = {"command": " ".join(cmd[cmd.index("pack") - 2:]), "dim": args.dim, "n": args.n,
               "dispersity": args.dispersity, "members": args.members, "seed": args.seed,
               "dphi": args.dphi, "ranks": args.ranks, "seconds": round(seconds, 1),
-              "clean": clean, "recovered": recovered, "stopped": stopped}
+              "clean": clean, "recovered": recovered, "stopped": stopped, **verdicts}
     with open(os.path.join(args.out, "census.json"), "w") as fh:
         json.dump(result, fh, indent=1)
     print(f"{args.dim}D {args.dispersity} N = {args.n}: {len(clean)} clean, {len(recovered)} "
-          f"recovered, {len(stopped)} stopped of {args.members} members ({seconds:.0f} s)")
+          f"recovered, {len(stopped)} stopped of {args.members} members ({seconds:.0f} s); "
+          f"{verdicts['stable']} of {verdicts['states']} states certified stable, "
+          f"{verdicts['escapes']} saddle(s) escaped")
 
 
 if __name__ == "__main__":

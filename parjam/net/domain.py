@@ -202,34 +202,38 @@ class SlabDomain:
     def halo(self, x_owned, ids, width, values=None):
         """The ghost plan for the owned rows (positions ``x_owned``, global ``ids``): every
         particle image within ``width`` of this rank's slab along axis 0 (collective, one
-        exchange).  Per-particle float64 ``values`` of the owned rows, if given, come along in
-        the same exchange: ``Halo.values`` are the ghosts' (as ``pull`` would give them)."""
+        exchange).  Per-particle float64 ``values`` of the owned rows (an array, or a list of
+        arrays), if given, come along in the same exchange: ``Halo.values`` are the ghosts' (as
+        ``pull`` would give them; a list for a list)."""
         x_owned = np.asarray(x_owned, dtype=np.float64)
         Lx = self.L[0]
         if not 0 <= width < Lx / 2:
             raise ValueError(f"halo width {width} must be below half the box ({Lx / 2})")
         x0 = x_owned[:, 0]
-        idx, dest, shift = [], [], []
-        for s in (-Lx, 0.0, Lx):
-            xs = x0 + s
-            qlo = np.searchsorted(self.bounds[1:], xs - width, side="right")
-            qhi = np.searchsorted(self.bounds[:-1], xs + width, side="left") - 1
-            qlo, qhi = np.maximum(qlo, 0), np.minimum(qhi, self.size - 1)
-            n = np.maximum(qhi - qlo + 1, 0)
-            rows = np.repeat(np.arange(len(x0)), n)
-            q = np.repeat(qlo, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
-            if s == 0.0:
-                rows, q = rows[q != self.rank], q[q != self.rank]
-            idx.append(rows)
-            dest.append(q)
-            shift.append(np.full(len(rows), s))
-        idx, dest, shift = np.concatenate(idx), np.concatenate(dest), np.concatenate(shift)
-        order = np.argsort(dest, kind="stable")
-        idx, dest, shift = idx[order], dest[order], shift[order]
+        b_lo, b_hi = self.bounds[self.rank], self.bounds[self.rank + 1]
+        low = x0 - width < b_lo
+        if (self.size > 1 and np.diff(self.bounds).min() > width
+                and (not len(x0) or (x0.min() >= b_lo and x0.max() < b_hi))):
+            # every slab wider than the halo and the rows inside this one (a migrated engine):
+            # a row near the lower face is a ghost of the rank below, near the upper face of
+            # the rank above (across the periodic boundary for the first and last ranks) --
+            # the plan of the general search below, in its order, with a few array operations
+            r, P = self.rank, self.size
+            groups = sorted([((r - 1) % P, Lx if r == 0 else 0.0, np.flatnonzero(low)),
+                             ((r + 1) % P, -Lx if r == P - 1 else 0.0,
+                              np.flatnonzero(x0 + width > b_hi))], key=lambda g: g[:2])
+            idx = np.concatenate([g[2] for g in groups])
+            dest = np.concatenate([np.full(len(g[2]), g[0], dtype=np.int64) for g in groups])
+            shift = np.concatenate([np.full(len(g[2]), g[1]) for g in groups])
+        else:
+            idx, dest, shift = self.ghost_rows(x0, width,
+                                               np.flatnonzero(low | (x0 + width >= b_hi)))
         counts = np.bincount(dest, minlength=self.size).astype(np.int64)
         parts = [np.asarray(ids, dtype=np.int64)[idx], shift, x_owned[idx]]
+        several = isinstance(values, (list, tuple))
         if values is not None:
-            parts.append(np.asarray(values, dtype=np.float64)[idx])
+            parts.extend(np.asarray(a, dtype=np.float64)[idx]
+                         for a in (values if several else [values]))
         rows, cols = pack_columns(parts, len(idx))
         got, rcounts = _exchange(self.comm, rows, counts)
         g_ids, g_s, g_x, *g_values = unpack_columns(got, cols)
@@ -238,8 +242,38 @@ class SlabDomain:
         shifts[:, 0] = g_s[perm]
         h = Halo(self.comm, idx, counts, rcounts, perm, g_ids[perm], shifts)
         h.x = g_x[perm] + shifts  # = h.positions(x_owned), without a second exchange
-        h.values = g_values[0][perm] if g_values else None
+        if values is not None:
+            h.values = [a[perm] for a in g_values] if several else g_values[0][perm]
         return h
+
+    def ghost_rows(self, x0, width, near=None):
+        """(rows, destination rank, shift along axis 0) of every image of the rows ``near`` (all
+        by default; coordinates ``x0`` along axis 0) within ``width`` of another slab or of this
+        one across the boundary, grouped by destination (by shift -Lx, 0, Lx and row within
+        one): the general search of ``halo``.  A row whose reach [x0 - width, x0 + width] lies
+        inside this rank's slab is nobody's ghost (nor, the slab being inside [0, Lx), are its
+        images at x0 -+ Lx): ``near`` need only hold the rows near the slab's faces."""
+        Lx = self.L[0]
+        x0 = np.asarray(x0, dtype=np.float64)
+        near = np.arange(len(x0)) if near is None else near
+        x0 = x0[near]
+        idx, dest, shift = [], [], []
+        for s in (-Lx, 0.0, Lx):
+            xs = x0 + s
+            qlo = np.searchsorted(self.bounds[1:], xs - width, side="right")
+            qhi = np.searchsorted(self.bounds[:-1], xs + width, side="left") - 1
+            qlo, qhi = np.maximum(qlo, 0), np.minimum(qhi, self.size - 1)
+            n = np.maximum(qhi - qlo + 1, 0)
+            rows = np.repeat(near, n)
+            q = np.repeat(qlo, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
+            if s == 0.0:
+                rows, q = rows[q != self.rank], q[q != self.rank]
+            idx.append(rows)
+            dest.append(q)
+            shift.append(np.full(len(rows), s))
+        idx, dest, shift = np.concatenate(idx), np.concatenate(dest), np.concatenate(shift)
+        order = np.argsort(dest, kind="stable")
+        return idx[order], dest[order], shift[order]
 
     def separation(self, xa, xb):
         """xb - xa: plain along axis 0 (unwrapped halo), minimum image along the others."""

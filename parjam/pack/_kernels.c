@@ -407,17 +407,129 @@ static void bucket_by_cell(int64_t n, int64_t ncells, const int64_t *cellof, int
     start[0] = 0;
 }
 
-/* Neighbour search by cells (kernels.cell_pairs): the pairs (i, j) with |x_j - x_i| <= cutoff
- * (minimum image) and i or j in [lo, hi), each once, as two index arrays of capacity ``cap``;
- * in (i, j) order, *sorted = 1, unless some pair's first particle is not owned (a rank's ghost),
- * *sorted = 0.  Positions are folded into [0, L); the box holds nc >= 3 cells of edge >= cutoff
- * per direction.  The particles are counting-sorted by cell (ascending index within a cell) and
- * their positions copied in that order, so a cell's candidates are read contiguously.
- * Scratch: start (nc^d + 1), order and cellof (n), sp (n d).
- * Returns the number of pairs, or -(number needed) when cap is too small (nothing usable). */
+/* ---- Neighbour search by cells, half stencil ----
+ *
+ * The points are counting-sorted into a grid of cells of edge >= cutoff (n0 along axis 0, nc
+ * along the others, nc >= 3; axis 0 periodic like the others, or open: a slab whose halo is
+ * unwrapped along it) and their positions copied in cell order ``sp``.  The cells are visited
+ * in memory order and each is paired with itself and the half of its neighbours that come
+ * first lexicographically (13 in 3D, 4 in 2D): every pair of points in the same or adjacent
+ * cells is met exactly once, with the periodic image shift of the neighbour cell applied to
+ * the whole cell, so a candidate costs one distance and no branch.  Out come the pairs within
+ * the cutoff as cell-order indices (ta, tb), unsorted; the callers put them into the global
+ * (i, j) order the force sums need (a counting sort by the lower end, then each short row by
+ * the upper end).  Returns the number found, which may exceed cap (only the first cap are
+ * written: call again with more room). */
+static const int STENCIL3[14][3] = {{0, 0, 0}, {0, 0, 1}, {0, 1, -1}, {0, 1, 0}, {0, 1, 1},
+                                    {1, -1, -1}, {1, -1, 0}, {1, -1, 1}, {1, 0, -1}, {1, 0, 0},
+                                    {1, 0, 1}, {1, 1, -1}, {1, 1, 0}, {1, 1, 1}};
+static const int STENCIL2[5][3] = {{0, 0, 0}, {0, 1, 0}, {1, -1, 0}, {1, 0, 0}, {1, 1, 0}};
+
+static ALWAYS_INLINE int64_t half_stencil(const int d, int64_t n0, int64_t nc, int open0,
+                                          double L, double cutoff, const int64_t *start,
+                                          const double *sp, int64_t cap, int64_t *ta,
+                                          int64_t *tb)
+{
+    const double cut2 = cutoff * cutoff;
+    const int64_t n1 = nc, n2 = d == 3 ? nc : 1;
+    const int ns = d == 3 ? 14 : 5;
+    int64_t count = 0;
+    for (int64_t m0 = 0; m0 < n0; m0++)
+        for (int64_t m1 = 0; m1 < n1; m1++)
+            for (int64_t m2 = 0; m2 < n2; m2++) {
+                const int64_t c = (m0 * n1 + m1) * n2 + m2;
+                const int64_t a0 = start[c], a1 = start[c + 1];
+                if (a0 == a1)
+                    continue;
+                for (int s = 0; s < ns; s++) {
+                    const int *o = d == 3 ? STENCIL3[s] : STENCIL2[s];
+                    const int64_t m[3] = {m0, m1, m2}, size[3] = {n0, n1, n2};
+                    double shift[3] = {0.0, 0.0, 0.0};
+                    int64_t c2 = 0, skip = 0;
+                    for (int k = 0; k < 3; k++) {
+                        int64_t t = m[k] + o[k];
+                        if (t < 0 || t >= size[k]) {
+                            if (k == 0 && open0)
+                                skip = 1;
+                            shift[k] = t < 0 ? -L : L; /* the image of cell t mod size */
+                            t = t < 0 ? t + size[k] : t - size[k];
+                        }
+                        c2 = c2 * size[k] + t;
+                    }
+                    if (skip)
+                        continue;
+                    const int64_t b1 = start[c2 + 1];
+                    for (int64_t a = a0; a < a1; a++) {
+                        /* x_b + shift - x_a = x_b - (x_a - shift) */
+                        double xa[3];
+                        for (int k = 0; k < d; k++)
+                            xa[k] = sp[a * d + k] - shift[k];
+                        for (int64_t b = s == 0 ? a + 1 : start[c2]; b < b1; b++) {
+                            double r2 = 0.0;
+                            for (int k = 0; k < d; k++) {
+                                const double x = sp[b * d + k] - xa[k];
+                                r2 += x * x;
+                            }
+                            if (count < cap) { /* written always, kept when in range */
+                                ta[count] = a;
+                                tb[count] = b;
+                            }
+                            count += r2 <= cut2;
+                        }
+                    }
+                }
+            }
+    return count;
+}
+
+static int64_t half_stencil_d(int d, int64_t n0, int64_t nc, int open0, double L, double cutoff,
+                              const int64_t *start, const double *sp, int64_t cap, int64_t *ta,
+                              int64_t *tb)
+{
+    if (d == 3)
+        return half_stencil(3, n0, nc, open0, L, cutoff, start, sp, cap, ta, tb);
+    return half_stencil(2, n0, nc, open0, L, cutoff, start, sp, cap, ta, tb);
+}
+
+/* Counting sort of the pairs (lo[p], up[p]) by row lo[p] in [0, nrows) into (pi, pj) (off:
+ * nrows + 1 scratch), then each row by its upper end's key ``ukey`` (insertion sort: a row
+ * holds a few pairs).  The result is in (row, ukey) order. */
+static void sort_rows(int64_t npairs, int64_t nrows, const int64_t *lo, const int64_t *up,
+                      const int64_t *ukey, int64_t *off, int64_t *pi, int64_t *pj)
+{
+    for (int64_t r = 0; r <= nrows; r++)
+        off[r] = 0;
+    for (int64_t p = 0; p < npairs; p++)
+        off[lo[p] + 1]++;
+    for (int64_t r = 0; r < nrows; r++)
+        off[r + 1] += off[r];
+    for (int64_t p = 0; p < npairs; p++) {
+        const int64_t q = off[lo[p]]++;
+        pi[q] = lo[p];
+        pj[q] = up[p];
+    }
+    /* off[r] is now the end of row r */
+    for (int64_t r = 0, first = 0; r < nrows; first = off[r], r++)
+        for (int64_t p = first + 1; p < off[r]; p++) {
+            const int64_t key = pj[p];
+            int64_t q = p - 1;
+            while (q >= first && ukey[pj[q]] > ukey[key]) {
+                pj[q + 1] = pj[q];
+                q--;
+            }
+            pj[q + 1] = key;
+        }
+}
+
+/* Neighbour search of a whole periodic box by cells (kernels.cell_pair_lists): the pairs
+ * i < j with |x_j - x_i| <= cutoff (minimum image) of the n points ``pos`` folded into [0, L),
+ * each once, in (i, j) order, in (pi, pj).  The box holds nc >= 3 cells of edge >= cutoff per
+ * direction.  Scratch: start (nc^d + 1), order and cellof (n), sp (n d), off (n + 1), ta and
+ * tb (cap).  Returns the number of pairs, or -(number needed) when cap is too small. */
 int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double cutoff, int nc,
-                          int64_t lo, int64_t hi, int64_t *start, int64_t *order, int64_t *cellof,
-                          double *sp, int64_t cap, int64_t *pi, int64_t *pj, int *sorted)
+                          int64_t *start, int64_t *order, int64_t *cellof, double *sp,
+                          int64_t *off, int64_t cap, int64_t *ta, int64_t *tb, int64_t *pi,
+                          int64_t *pj)
 {
     int64_t ncells = 1;
     for (int a = 0; a < d; a++)
@@ -427,11 +539,7 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
         int64_t c = 0;
         for (int a = 0; a < d; a++) {
             int64_t m = (int64_t)(pos[k * d + a] * scale);
-            if (m >= nc)
-                m = nc - 1;
-            if (m < 0)
-                m = 0;
-            c = c * nc + m;
+            c = c * nc + (m < 0 ? 0 : (m >= nc ? nc - 1 : m));
         }
         cellof[k] = c;
     }
@@ -439,84 +547,35 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
     for (int64_t q = 0; q < n; q++)
         for (int a = 0; a < d; a++)
             sp[q * d + a] = pos[order[q] * d + a];
-    const double cut2 = cutoff * cutoff;
-    const int span2 = d == 3 ? 3 : 1; /* offsets in the third direction (none in 2D) */
-    int64_t count = 0;
-    int64_t unordered = 0; /* pairs (j, i) with j < i not owned: then the caller sorts */
-    for (int64_t i = lo; i < hi; i++) {
-        const int64_t first = count;
-        int m[3] = {0, 0, 0};
-        for (int a = d - 1, c = (int)cellof[i]; a >= 0; a--, c /= nc)
-            m[a] = c % nc;
-        for (int o0 = 0; o0 < 3; o0++)
-            for (int o1 = 0; o1 < 3; o1++)
-                for (int o2 = 0; o2 < span2; o2++) {
-                    /* the neighbour cell, and the image shift its wrap implies: x_j - x_i is
-                     * then x_j - (x_i - shift), with no branch per candidate */
-                    const int oo[3] = {o0, o1, o2};
-                    double xr[3] = {0.0, 0.0, 0.0};
-                    int64_t c = 0;
-                    for (int a = 0; a < d; a++) {
-                        int t = m[a] + oo[a] - 1;
-                        double shift = 0.0;
-                        if (t < 0) {
-                            t += nc;
-                            shift = -L;
-                        } else if (t >= nc) {
-                            t -= nc;
-                            shift = L;
-                        }
-                        c = c * nc + t;
-                        xr[a] = pos[i * d + a] - shift;
-                    }
-                    for (int64_t q = start[c]; q < start[c + 1]; q++) {
-                        const int64_t j = order[q];
-                        if (j == i || (j >= lo && j < hi && j < i))
-                            continue; /* each owned-owned pair once, from its smaller index */
-                        double r2 = 0.0;
-                        for (int a = 0; a < d; a++) {
-                            const double x = sp[q * d + a] - xr[a];
-                            r2 += x * x;
-                        }
-                        const int in = r2 <= cut2;
-                        if (count < cap) { /* written always, kept when in range */
-                            pi[count] = i < j ? i : j;
-                            pj[count] = i < j ? j : i;
-                        }
-                        unordered += in & (j < i);
-                        count += in;
-                    }
-                }
-        /* the row of i in ascending j (insertion sort of a few entries): with no unordered
-         * pair the whole list comes out in (i, j) order */
-        if (count <= cap && !unordered)
-            for (int64_t p = first + 1; p < count; p++) {
-                const int64_t key = pj[p];
-                int64_t q = p - 1;
-                while (q >= first && pj[q] > key) {
-                    pj[q + 1] = pj[q];
-                    q--;
-                }
-                pj[q + 1] = key;
-            }
+    const int64_t count = half_stencil_d(d, nc, nc, 0, L, cutoff, start, sp, cap, ta, tb);
+    if (count > cap)
+        return -count;
+    for (int64_t p = 0; p < count; p++) { /* cell order -> ids, lower end first */
+        const int64_t i = order[ta[p]], j = order[tb[p]];
+        ta[p] = i < j ? i : j;
+        tb[p] = i < j ? j : i;
     }
-    *sorted = !unordered;
-    return count <= cap ? count : -count;
+    for (int64_t k = 0; k < n; k++)
+        order[k] = k; /* the upper end's key: its id */
+    sort_rows(count, n, ta, tb, order, off, pi, pj);
+    return count;
 }
 
-/* The search loop of parjam_slab_pairs, inlined with d and ``wide`` constant at its call
- * sites (the loops over d unroll, the periodic branch goes). */
-static ALWAYS_INLINE int64_t slab_loop(int d, const int wide, const double *pos, double L,
-                                       double cutoff, int64_t nx, int64_t nc, const int64_t *row,
-                                       const int64_t *gid, const int64_t *kind, int64_t nlow,
-                                       const int64_t *low, const int64_t *start,
-                                       const int64_t *order, const int64_t *cellof,
-                                       const double *sp, const int64_t *sg, int64_t cap,
-                                       int64_t *pi, int64_t *pj)
+/* The search of a slab too thin for the half stencil (fewer than 3 cells across a periodic
+ * direction, a small box): for each lower end in ``low`` order every cell of the neighbouring
+ * x layers, with the minimum image per candidate along the periodic directions; each row
+ * sorted by the upper end's global id. */
+static int64_t slab_narrow(int d, const double *pos, double L, double cutoff, int64_t nx,
+                           int64_t nc, const int64_t *row, const int64_t *gid,
+                           const int64_t *kind, int64_t nlow, const int64_t *low,
+                           const int64_t *start, const int64_t *order, const int64_t *cellof,
+                           const double *sp, const int64_t *sg, int64_t cap, int64_t *pi,
+                           int64_t *pj)
 {
     const double cut2 = cutoff * cutoff;
-    const int64_t span = wide ? 3 : nc;
-    const int64_t span2 = d == 3 ? span : 1;
+    int64_t cells_x = 1; /* cells per x layer */
+    for (int a = 1; a < d; a++)
+        cells_x *= nc;
     int64_t count = 0;
     for (int64_t t = 0; t < nlow; t++) {
         const int64_t i = low[t];
@@ -525,55 +584,29 @@ static ALWAYS_INLINE int64_t slab_loop(int d, const int wide, const double *pos,
          * g_j >= gi2 + 2 (gid[i] owned) or g_j = 2 gid[j] >= gi2 + 1 with j owned */
         const int64_t gi2 = 2 * gid[i];
         const int own_i = kind[i] == 0;
-        int64_t m[3] = {0, 0, 0};
-        int64_t ci = cellof[i];
-        for (int a = d - 1; a >= 1; a--) {
-            m[a] = ci % nc;
-            ci /= nc;
-        }
-        m[0] = ci;
-        for (int64_t o0 = -1; o0 <= 1; o0++) {
-            const int64_t t0 = m[0] + o0;
+        const int64_t m0 = cellof[i] / cells_x;
+        for (int64_t t0 = m0 - 1; t0 <= m0 + 1; t0++) {
             if (t0 < 0 || t0 >= nx)
                 continue;
-            for (int64_t o1 = 0; o1 < span; o1++)
-                for (int64_t o2 = 0; o2 < span2; o2++) {
-                    int64_t c = t0;
-                    const int64_t oo[3] = {0, o1, o2};
-                    double xr[3] = {pos[i * d], 0.0, 0.0};
-                    for (int a = 1; a < d; a++) {
-                        int64_t tt = wide ? m[a] + oo[a] - 1 : oo[a];
-                        double shift = 0.0;
-                        if (tt < 0) {
-                            tt += nc;
-                            shift = -L;
-                        } else if (tt >= nc) {
-                            tt -= nc;
-                            shift = L;
-                        }
-                        c = c * nc + tt;
-                        xr[a] = pos[i * d + a] - shift; /* x_j - x_i = x_j - (x_i - shift) */
-                    }
-                    for (int64_t q = start[c]; q < start[c + 1]; q++) {
-                        const int64_t g = sg[q];
-                        if (own_i ? g < gi2 + 2 : (g & 1) || g <= gi2)
-                            continue;
-                        double r2 = 0.0;
-                        for (int a = 0; a < d; a++) {
-                            double x = sp[q * d + a] - xr[a];
-                            if (!wide && a > 0 && (x > 0.5 * L || x < -0.5 * L))
-                                x -= L * rint(x / L);
-                            r2 += x * x;
-                        }
-                        if (r2 > cut2)
-                            continue;
-                        if (count < cap) {
-                            pi[count] = i;
-                            pj[count] = q; /* a cell-order index until the row is sorted */
-                        }
-                        count++;
-                    }
+            for (int64_t q = start[t0 * cells_x]; q < start[(t0 + 1) * cells_x]; q++) {
+                const int64_t g = sg[q];
+                if (own_i ? g < gi2 + 2 : (g & 1) || g <= gi2)
+                    continue;
+                double r2 = 0.0;
+                for (int a = 0; a < d; a++) {
+                    double x = sp[q * d + a] - pos[i * d + a];
+                    if (a > 0 && (x > 0.5 * L || x < -0.5 * L))
+                        x -= L * rint(x / L);
+                    r2 += x * x;
                 }
+                if (r2 > cut2)
+                    continue;
+                if (count < cap) {
+                    pi[count] = i;
+                    pj[count] = q; /* a cell-order index until the row is sorted */
+                }
+                count++;
+            }
         }
         if (count <= cap) {
             /* the group of i by the upper end's global id (insertion sort of a few entries) */
@@ -605,13 +638,15 @@ static ALWAYS_INLINE int64_t slab_loop(int d, const int wide, const double *pos,
  * ``low`` (kinds 0 and 2 by global id) and, within a group, by the upper end's global id: the
  * global (i, j) order, so the contact forces on a particle are summed in the same order on any
  * number of ranks.  Cells: nx of edge w0 along axis 0 from x0min, nc of edge L / nc along the
- * others (every cell once when nc < 3).  Scratch: start (ncells + 1), order, cellof, sg (n), sp (n d).
+ * others: the half stencil when nc >= 3, else ``slab_narrow``.  Scratch: start (ncells + 1),
+ * order, cellof, sg, place (n), sp (n d), off (nlow + 1), ta and tb (cap).
  * Returns the number of pairs, or -(number needed) when cap is too small. */
 int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double cutoff,
                           double x0min, double w0, int64_t nx, int64_t nc, const int64_t *row,
                           const int64_t *gid, const int64_t *kind, int64_t nlow,
                           const int64_t *low, int64_t *start, int64_t *order, int64_t *cellof,
-                          double *sp, int64_t *sg, int64_t cap, int64_t *pi, int64_t *pj)
+                          double *sp, int64_t *sg, int64_t *place, int64_t *off, int64_t cap,
+                          int64_t *ta, int64_t *tb, int64_t *pi, int64_t *pj)
 {
     int64_t ncells = nx;
     for (int a = 1; a < d; a++)
@@ -635,13 +670,36 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
             sp[q * d + a] = pos[k * d + a];
         sg[q] = 2 * gid[k] + (kind[k] != 0);
     }
-    const int wide = nc >= 3; /* periodic neighbours m-1, m, m+1; else every cell once */
-    if (d == 3 && wide)
-        return slab_loop(3, 1, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
-                         cellof, sp, sg, cap, pi, pj);
-    if (d == 2 && wide)
-        return slab_loop(2, 1, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
-                         cellof, sp, sg, cap, pi, pj);
-    return slab_loop(d, 0, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
-                     cellof, sp, sg, cap, pi, pj);
+    if (nc < 3)
+        return slab_narrow(d, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
+                           cellof, sp, sg, cap, pi, pj);
+    const int64_t found = half_stencil_d(d, nx, nc, 1, L, cutoff, start, sp, cap, ta, tb);
+    if (found > cap)
+        return -found;
+    for (int64_t k = 0; k < n; k++)
+        place[k] = -1;
+    for (int64_t t = 0; t < nlow; t++)
+        place[low[t]] = t;
+    int64_t count = 0;
+    for (int64_t p = 0; p < found; p++) {
+        int64_t a = order[ta[p]], b = order[tb[p]];
+        if (gid[a] == gid[b])
+            continue; /* a particle and its own image */
+        if (gid[a] > gid[b]) {
+            const int64_t s = a;
+            a = b;
+            b = s;
+        }
+        if (place[a] < 0 || !(kind[a] == 0 || (kind[a] == 2 && kind[b] == 0)))
+            continue; /* no owned end, or an own image as the lower end */
+        ta[count] = place[a];
+        tb[count] = b;
+        count++;
+    }
+    sort_rows(count, nlow, ta, tb, gid, off, pi, pj);
+    for (int64_t p = 0; p < count; p++) {
+        pi[p] = row[low[pi[p]]];
+        pj[p] = row[pj[p]];
+    }
+    return count;
 }

@@ -3,13 +3,15 @@ packing held as numpy arrays of each rank's own particles (a slab) and a halo of
 no rank holds or loops over all N particles.
 
 Each rank owns the particles of its slab (positions, velocities, diameters, global ids, sorted
-by id).  A neighbour rebuild hands particles that left a slab to their new owner
-(``SlabDomain.migrate``; the slab bounds move to the count quantiles again, before the
-hand-over, when the counts would drift by more than REBALANCE), plans the ghosts within
-cutoff = max diameter + skin of the slab (``SlabDomain.halo``: their positions, velocities and
-diameters pulled in one exchange) and lists the pairs of owned particles and ghosts in compiled
-code (``kernels.slab_pairs``; on one rank, where all ghosts are periodic images, the fully
-periodic cell search ``kernels.cell_pair_lists``, with no halo).
+by id).  A neighbour rebuild hands the particles that left a slab, and only those, to their new
+owner (one exchange, none when no particle left any slab; the slab bounds move to the count
+quantiles again, before the hand-over, when the counts would drift by more than REBALANCE),
+plans the ghosts within cutoff = max diameter + skin of the slab (``SlabDomain.halo``: their
+positions, velocities and diameters pulled in one exchange) and lists the pairs of owned
+particles and ghosts in compiled code (``kernels.slab_pairs``; on one rank, where all ghosts
+are periodic images, the fully periodic cell search ``kernels.cell_pair_lists``, with no halo).
+Both searches visit each pair of neighbouring cells once (a half stencil) and sort the pairs
+into the global (i, j) order afterwards.
 
 A FIRE step on P ranks has ONE synchronisation: the compiled update moves the owned particles
 AND the ghosts (each rank holds its ghosts' positions, velocities and forces, and moves them
@@ -92,64 +94,81 @@ class SlabEngine:
         """Migration (to new bounds if the counts would drift or ``rebalance``), the ghost plan
         and the pair list at the current positions (collective)."""
         with event(REBUILD):
-            with event(MIGRATE):
-                if self.size > 1:
-                    dest = self.domain.owner(self.xu)
-                    leaving = np.count_nonzero(dest != self.rank)
-                    counts = np.bincount(dest, minlength=self.size).astype(np.int64)
+            xw = self.domain.wrap(self.xu)
+            if self.size > 1:
+                with event(MIGRATE):
+                    dest = self.domain.owner(xw)
+                    # the rows each rank would own, and how many leave their slab in all
+                    counts = np.bincount(dest, minlength=self.size + 1).astype(np.int64)
+                    counts[-1] = np.count_nonzero(dest != self.rank)
                     self.comm.Allreduce(_mpi_in_place(), counts, op=_mpi_sum())
-                    if rebalance or counts.max() > REBALANCE * counts.mean():
+                    if rebalance or counts[:-1].max() > REBALANCE * counts[:-1].mean():
                         self.domain = SlabDomain.balanced(self.comm, self.L, self.xu)
-                    ids, fl = self._migrate(self.xu, self.ids, self.v, self.diam)
-                    self.n_migrated += int(leaving)
-                else:  # one slab: nothing to hand over
-                    ids, fl = self.ids, {"xu": self.xu, "v": self.v, "diam": self.diam}
-            self._own(fl["xu"], ids, fl["diam"], fl["v"])
-            self._plan()
+                        dest = self.domain.owner(xw)
+                        counts[-1] = 1  # every rank hands over
+                    if counts[-1]:  # else nothing moves: no exchange
+                        xw = self._migrate(xw, dest)
+            self._plan(xw)
             self.n_rebuilds += 1
 
-    def _migrate(self, xu, ids, v, diam):
-        """SlabDomain.migrate of the rows, their fields packed into one array (one exchange)."""
+    def _migrate(self, xw, dest):
+        """The rows leaving this slab to their owners ``dest`` (one exchange of the leavers
+        alone: positions, velocities and diameters side by side), the arrivals merged in, the
+        rows sorted by id again; returns the wrapped positions of the new rows."""
         d = self.d
-        packed = np.concatenate([xu, v, diam[:, None]], axis=1)
-        _, ids, fl = self.domain.migrate(xu, ids, {"p": packed})
-        p = fl["p"]
-        return ids, {"xu": np.ascontiguousarray(p[:, :d]),
-                     "v": np.ascontiguousarray(p[:, d:2 * d]),
-                     "diam": np.ascontiguousarray(p[:, 2 * d])}
+        leave = dest != self.rank
+        out = np.flatnonzero(leave)
+        self.n_migrated += len(out)
+        packed = np.concatenate([self.xu[out], self.v[out], self.diam[out, None]], axis=1)
+        ids_in, got = send_rows(self.comm, dest[out], self.ids[out], {"p": packed})
+        if not len(out) and not len(ids_in):
+            return xw
+        p = got["p"]
+        keep = np.flatnonzero(~leave)
+        ids = np.concatenate([self.ids[keep], ids_in])
+        o = np.argsort(ids, kind="stable")  # two sorted runs
+        rows = np.concatenate([keep, len(self.ids) + np.arange(len(ids_in))])[o]
 
-    def _plan(self):
-        """Ghosts, the force arrays and the pair list for the owned rows (collective)."""
-        n_own, d = len(self.ids), self.d
+        def merged(mine, arrived):  # this rank's rows and the arrivals, in the new order
+            return np.concatenate([mine, arrived])[rows]
+
+        self._own(merged(self.xu, p[:, :d]), ids[o], merged(self.diam, p[:, 2 * d]),
+                  merged(self.v, p[:, d:2 * d]))
+        return merged(xw, self.domain.wrap(p[:, :d]))
+
+    def _plan(self, xw):
+        """Ghosts, the force arrays and the pair list for the owned rows, whose wrapped
+        positions are ``xw`` (collective)."""
+        n_own = len(self.ids)
         # the last list's arrays go first (a rebuild's peak memory), its length sizes the next
         cap = int(1.25 * len(self.pi)) + 1024 if getattr(self, "pi", None) is not None else None
         self.kernel = self.pi = self.pj = self.f = self.ref = self.pdiam = None
-        xw = self.domain.wrap(self.xu)
         if self.size == 1 and self._plan_periodic(xw, cap):
             return
         # the ghost plan, and the ghosts' positions, velocities and diameters, in one exchange
         with event(HALO) if self.size > 1 else contextlib.nullcontext():  # one rank: a copy
-            halo = self.domain.halo(xw, self.ids, self.cut,
-                                    np.concatenate([self.xu, self.v, self.diam[:, None]], axis=1))
-        got = halo.values
+            halo = self.domain.halo(xw, self.ids, self.cut, [self.xu, self.v, self.diam])
         src = np.repeat(np.arange(self.size), halo.recv_counts)[halo.order]
         image = src == self.rank  # own particles seen across the periodic boundary
         foreign = np.flatnonzero(~image)
         row = np.empty(halo.n, dtype=np.int64)
         row[foreign] = n_own + np.arange(len(foreign))
         row[image] = np.searchsorted(self.ids, halo.ids[image])
-        kind = np.where(image, 1, 2)
+        kinds = np.concatenate([np.zeros(n_own, dtype=np.int64), np.where(image, 1, 2)])
         gid = np.concatenate([self.ids, halo.ids])
-        kinds = np.concatenate([np.zeros(n_own, dtype=np.int64), kind])
-        # owned rows sorted by id, ghosts by (id, shift): a stable sort by id merges them
-        low = np.argsort(gid, kind="stable")
-        low = low[kinds[low] != 1]
+        # the owned rows (sorted by id) and the other ranks' ghosts (by (id, shift)) merged by
+        # id: a ghost goes after the owned ids below it and the ghosts before it
+        low = np.empty(n_own + len(foreign), dtype=np.int64)
+        at = np.searchsorted(self.ids, halo.ids[foreign]) + np.arange(len(foreign))
+        mine = np.ones(len(low), dtype=bool)
+        mine[at] = False
+        low[at] = n_own + foreign
+        low[mine] = np.arange(n_own)
         self.pi, self.pj = kernels.slab_pairs(np.concatenate([xw, halo.x]), self.L, self.cut,
                                               np.concatenate([np.arange(n_own), row]), gid,
                                               kinds, low, cap)
         self._ghost_plan(halo, foreign)
-        got = got[foreign]
-        self._arrays(got[:, :d], got[:, d:2 * d], got[:, 2 * d])
+        self._arrays(*(a[foreign] for a in halo.values))
 
     def _ghost_plan(self, halo, foreign):
         """The per-step exchange of the ghosts' forces: the owned rows other ranks hold as

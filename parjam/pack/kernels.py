@@ -144,13 +144,13 @@ def library():
     c = lib.parjam_cell_pairs
     c.restype = ctypes.c_int64
     c.argtypes = [ctypes.c_int64, ctypes.c_int, f64, ctypes.c_double, ctypes.c_double,
-                  ctypes.c_int, ctypes.c_int64, ctypes.c_int64, wi64, wi64, wi64, w64,
-                  ctypes.c_int64, wi64, wi64, ctypes.POINTER(ctypes.c_int)]
+                  ctypes.c_int, wi64, wi64, wi64, w64, wi64, ctypes.c_int64, wi64, wi64, wi64,
+                  wi64]
     sl = lib.parjam_slab_pairs
     sl.restype = ctypes.c_int64
     sl.argtypes = [ctypes.c_int64, ctypes.c_int, f64, dbl, dbl, dbl, dbl, ctypes.c_int64,
                    ctypes.c_int64, i64, i64, i64, ctypes.c_int64, i64, wi64, wi64, wi64, w64,
-                   wi64, ctypes.c_int64, wi64, wi64]
+                   wi64, wi64, wi64, ctypes.c_int64, wi64, wi64, wi64, wi64]
     _lib = lib
     return _lib
 
@@ -342,7 +342,9 @@ def cell_pairs(pos, L, cutoff, lo, hi):
 
 def cell_pair_lists(pos, L, cutoff, lo, hi, cap=None):
     """cell_pairs as two arrays (pi, pj) (the engine's form on one rank); ``cap``: the expected
-    number of pairs (more are found by a second pass)."""
+    number of pairs (more are found by a second pass).  The search covers the whole box (half
+    stencil, ``parjam_cell_pairs``); for a part [lo, hi) of the rows the pairs touching it are
+    kept."""
     lib = library()
     n, d = pos.shape
     nc = int(L // cutoff) if cutoff > 0 else 0
@@ -351,22 +353,24 @@ def cell_pair_lists(pos, L, cutoff, lo, hi, cap=None):
     pos = np.ascontiguousarray(pos, dtype=np.float64)
     start = np.empty(nc ** d + 1, dtype=np.int64)
     order, cellof = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-    sp = np.empty((n, d))
-    cap = 40 * max(hi - lo, 1) + 1024 if cap is None else int(cap)
-    ordered = ctypes.c_int(0)
+    sp, off = np.empty((n, d)), np.empty(n + 1, dtype=np.int64)
+    cap = 20 * n + 1024 if cap is None else int(cap)
     while True:
+        ta, tb = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
         pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
-        got = lib.parjam_cell_pairs(n, d, pos, L, cutoff, nc, lo, hi, start, order, cellof,
-                                    sp, cap, pi, pj, ctypes.byref(ordered))
+        got = lib.parjam_cell_pairs(n, d, pos, L, cutoff, nc, start, order, cellof, sp, off,
+                                    cap, ta, tb, pi, pj)
         if got >= 0:
             break
         cap = -got
-    if ordered.value:  # one rank (or no ghost first in a pair): already in (i, j) order
-        if got < 0.7 * cap:  # a loose first guess: no idle capacity kept
-            return pi[:got].copy(), pj[:got].copy()
-        return pi[:got], pj[:got]
-    key = np.sort(pi[:got] * n + pj[:got])
-    return key // n, key % n
+    del ta, tb
+    pi, pj = pi[:got], pj[:got]
+    if lo > 0 or hi < n:
+        keep = ((pi >= lo) & (pi < hi)) | ((pj >= lo) & (pj < hi))
+        return pi[keep], pj[keep]
+    if got < 0.7 * cap:  # a loose first guess: no idle capacity kept
+        return pi.copy(), pj.copy()
+    return pi, pj
 
 
 def slab_pairs(pos, L, cutoff, row, gid, kind, low, cap=None):
@@ -399,17 +403,23 @@ def slab_pairs(pos, L, cutoff, row, gid, kind, low, cap=None):
         return _slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low)
     start = np.empty(nx * nc ** (d - 1) + 1, dtype=np.int64)
     order, cellof = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-    sp, sg = np.empty((n, d)), np.empty(n, dtype=np.int64)
-    cap = 4 * n + 1024 if cap is None else int(cap)
+    sp, sg, place = np.empty((n, d)), np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    off = np.empty(len(low) + 1, dtype=np.int64)
+    # room for the pairs found before the ones without an owned end are dropped
+    cap = 10 * n + 1024 if cap is None else int(1.1 * cap) + 1024
     while True:
+        ta, tb = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
         pi, pj = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
         got = lib.parjam_slab_pairs(n, d, pos, L, cutoff, x0min, w0, nx, nc, row, gid, kind,
-                                    len(low), low, start, order, cellof, sp, sg, cap, pi, pj)
+                                    len(low), low, start, order, cellof, sp, sg, place, off,
+                                    cap, ta, tb, pi, pj)
+        del ta, tb
         if got >= 0:
             if got < 0.7 * cap:  # a loose first guess: no idle capacity kept
                 return pi[:got].copy(), pj[:got].copy()
             return pi[:got], pj[:got]
         cap = -got
+
 
 
 def _slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low):

@@ -64,8 +64,8 @@ def brute_ghosts(x, owner, bounds, rank, Lx, width):
 
 @pytest.mark.parametrize("d, frac", [(3, 0.12), (2, 0.2), (3, 0.45)])
 def test_halo_is_every_image_within_the_width(d, frac):
-    """Ghosts = brute force, positions are the unwrapped images, pull and push are each
-    other's transpose; frac = 0.45 of the box makes ghosts come from every rank (and from this
+    """Ghosts = brute force, positions are the unwrapped images, the plan is the general
+    search's, pull and push are each other's transpose; frac = 0.45 of the box makes ghosts come from every rank (and from this
     rank's own far side)."""
     n = 1500
     L = np.full(d, 10.0)
@@ -75,6 +75,11 @@ def test_halo_is_every_image_within_the_width(d, frac):
     owner = dom.owner(x)
     want = brute_ghosts(x, owner, dom.bounds, dom.rank, L[0], width)
     assert sorted(zip(h.ids.tolist(), h.shift[:, 0].tolist())) == want
+    # the plan (the general search's, or the neighbour-slab shortcut's when every slab is wider
+    # than the halo) sends the same rows to the same ranks in the same order
+    rows, dest, _ = dom.ghost_rows(xo[:, 0], width)
+    assert np.array_equal(h.send_index, rows)
+    assert np.array_equal(h.send_counts, np.bincount(dest, minlength=COMM.size))
     assert np.allclose(h.x, x[h.ids] + h.shift, rtol=0, atol=1e-12)
     assert np.array_equal(h.pull(f["diam"]), diam[h.ids])
     # push(1) counts how often each owned particle is somebody's ghost

@@ -176,10 +176,11 @@ def test_the_same_on_three_ranks():
 
 def test_the_numpy_slab_search_lists_the_compiled_ones_pairs(monkeypatch):
     """kernels.slab_pairs: the k-d tree fallback (PARJAM_KERNELS=numpy) lists the same pairs in
-    the same order as the compiled cell search, in a thin box (every cell once) and a wide one
-    (on one rank the compiled list there is the fully periodic cell search's,
-    kernels.cell_pair_lists: the same pairs in the same order as the slab search's)."""
-    for n, L in ((30, 2.4 * 1.2), (400, None)):
+    the same order as the compiled cell search, in a thin box (every cell once), one of 3 cells
+    a side (the smallest the half stencil takes: the periodic images of a cell's neighbours
+    meet) and a wide one (on one rank the compiled list there is the fully periodic cell
+    search's, kernels.cell_pair_lists: the same pairs in the same order as the slab search's)."""
+    for n, L in ((30, 2.4 * 1.2), (150, 3.1 * 1.2), (400, None)):
         if L is None:
             pack = quenched(3, "bi", n, 0.6, 0)
             pos, diam, L = pack.pos, pack.diam, pack.L

@@ -35,7 +35,8 @@ def test_events_count_kernel_calls_rebuilds_halo_and_newton(world):
     assert (2 if several else 1) * steps + 1 <= fired[logevents.FORCE]
     assert fired[logevents.FORCE] <= (2 if several else 1) * steps + 1 + fired[logevents.REBUILD]
     assert 0 < fired[logevents.REBUILD] < steps
-    assert fired[logevents.MIGRATE] == fired[logevents.REBUILD]
+    # a hand-over of the slabs' particles at every rebuild (one rank has none)
+    assert fired[logevents.MIGRATE] == (fired[logevents.REBUILD] if several else 0)
     # one reduction per step and the start's, with the ghosts' forces sent before it and
     # received after it (two halo events), and the ghosts pulled at each rebuild
     assert fired[logevents.ALLREDUCE] == (steps + 1 if several else 0)
