@@ -15,6 +15,13 @@
  * over the ranks in one allreduce.  The sums are exact (parjam_exact_*: integer accumulators,
  * rounded once at the end), so they, and with them FIRE's trajectory, are the same bits on any
  * number of ranks.
+ *
+ * parjam_cell_pairs / parjam_slab_pairs: the neighbour searches by cells (whole periodic box;
+ * one rank's slab and its ghosts) that list the pairs in the global (i, j) order the sums above
+ * rely on.
+ *
+ * Over 500 lines on purpose: one source is one library with one SHA (kernels.py builds and
+ * checks exactly that); splitting it would mean several libraries to build, hash and load.
  */
 #include <math.h>
 #include <stdint.h>
