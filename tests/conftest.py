@@ -71,3 +71,20 @@ def run_on_ranks(test_file, ranks, *pytest_args, timeout=600):
                                     *pytest_args, find_test(test_file)],
                           cwd=ROOT, env=subprocess_env(), capture_output=True, text=True,
                           timeout=timeout)
+
+
+# Tests write only inside temporary directories of their own: anything new in the checkout's top
+# folder (or the folder pytest runs in) after the session fails the run, naming it.
+def listing():
+    return {os.path.join(folder, name) for folder in {ROOT, os.getcwd()}
+            for name in os.listdir(folder) if not name.startswith(".") and name != "__pycache__"}
+
+
+BEFORE = listing()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    stray = sorted(listing() - BEFORE)
+    if stray:
+        sys.stderr.write(f"\ntests wrote outside their temporary directories: {stray}\n")
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED

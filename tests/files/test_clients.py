@@ -315,7 +315,8 @@ def test_lammps_read_data_gives_parjams_energy_pressure_forces(own, d, style):
 
 @pytest.fixture
 def shared_dir(tmp_path):
-    return MPI.bcast(str(own))
+    """One directory for all ranks: rank 0's tmp_path (the export command is collective)."""
+    return MPI.bcast(str(tmp_path))
 
 
 @pytest.mark.parametrize("fmt,ext", [("extxyz", ".xyz"), ("lammps-data", ".data"),
