@@ -332,15 +332,22 @@ def unpack_columns(rows, layout):
 
 def send_rows(comm, dest, ids, fields=None):
     """Send row k of ``ids`` and of every per-particle array in ``fields`` to rank ``dest[k]``
-    (collective); returns (ids, fields) of the rows received, sorted by id.  The packing engine
-    (parjam.pack.engine) hands its slabs back to PETSc's contiguous row blocks with it."""
+    (collective); returns (ids, fields) of the rows received, sorted by id.  The ids and the
+    float64 fields travel side by side in one exchange, other fields in one each.  The packing
+    engine (parjam.pack.engine) hands particles between its slabs, and its slabs back to
+    PETSc's contiguous row blocks, with it."""
     comm = as_mpi(comm)
     dest = np.asarray(dest, dtype=np.int64)
-    fields = dict(fields or {})
+    fields = {k: np.asarray(v) for k, v in (fields or {}).items()}
     order = np.argsort(dest, kind="stable")
     counts = np.bincount(dest, minlength=comm.Get_size())
-    ids_new, rcounts = _exchange(comm, np.asarray(ids, dtype=np.int64)[order], counts)
-    out = {k: _exchange_known(comm, np.asarray(fields[k])[order], counts, rcounts)
-           for k in sorted(fields)}
+    floats = [k for k in sorted(fields) if fields[k].dtype == np.float64]
+    rows, cols = pack_columns([np.asarray(ids, dtype=np.int64)] + [fields[k] for k in floats],
+                              len(dest))
+    got, rcounts = _exchange(comm, rows[order], counts)
+    ids_new, *fl = unpack_columns(got, cols)
+    out = dict(zip(floats, fl))
+    out.update({k: _exchange_known(comm, fields[k][order], counts, rcounts)
+                for k in sorted(fields) if k not in out})
     keep = np.argsort(ids_new, kind="stable")
     return ids_new[keep], {k: v[keep] for k, v in out.items()}

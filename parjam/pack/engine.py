@@ -79,6 +79,7 @@ class SlabEngine:
         self.n_rebuilds = self.n_migrated = 0
         self.acc = np.zeros(kernels.FIRE_ACC, dtype=np.int64)  # the step's sums (exact)
         self.sums = np.zeros(kernels.N_SUMS)
+        self.scratch = kernels.Scratch()  # the searches' work arrays, kept between rebuilds
         v = np.zeros_like(x) if v is None else np.array(v, dtype=np.float64)
         self.domain = SlabDomain.balanced(self.comm, self.L, x)
         ids = np.asarray(ids, dtype=np.int64)
@@ -113,28 +114,30 @@ class SlabEngine:
 
     def _migrate(self, xw, dest):
         """The rows leaving this slab to their owners ``dest`` (one exchange of the leavers
-        alone: positions, velocities and diameters side by side), the arrivals merged in, the
-        rows sorted by id again; returns the wrapped positions of the new rows."""
-        d = self.d
+        alone: ids, positions, velocities and diameters side by side), the arrivals merged in
+        by id (both runs are sorted); returns the wrapped positions of the new rows."""
         leave = dest != self.rank
         out = np.flatnonzero(leave)
         self.n_migrated += len(out)
-        packed = np.concatenate([self.xu[out], self.v[out], self.diam[out, None]], axis=1)
-        ids_in, got = send_rows(self.comm, dest[out], self.ids[out], {"p": packed})
+        ids_in, got = send_rows(self.comm, dest[out], self.ids[out],
+                                {"x": self.xu[out], "v": self.v[out], "diam": self.diam[out]})
         if not len(out) and not len(ids_in):
             return xw
-        p = got["p"]
         keep = np.flatnonzero(~leave)
-        ids = np.concatenate([self.ids[keep], ids_in])
-        o = np.argsort(ids, kind="stable")  # two sorted runs
-        rows = np.concatenate([keep, len(self.ids) + np.arange(len(ids_in))])[o]
+        n_new = len(keep) + len(ids_in)
+        at = np.searchsorted(self.ids[keep], ids_in) + np.arange(len(ids_in))  # arrivals' rows
+        rows = np.empty(n_new, dtype=np.int64)  # the new rows in [old rows; arrivals]
+        rows[at] = len(self.ids) + np.arange(len(ids_in))
+        mine = np.ones(n_new, dtype=bool)
+        mine[at] = False
+        rows[mine] = keep
 
-        def merged(mine, arrived):  # this rank's rows and the arrivals, in the new order
-            return np.concatenate([mine, arrived])[rows]
+        def merged(values, arrived):  # this rank's remaining rows and the arrivals, by id
+            return np.concatenate([values, arrived])[rows]
 
-        self._own(merged(self.xu, p[:, :d]), ids[o], merged(self.diam, p[:, 2 * d]),
-                  merged(self.v, p[:, d:2 * d]))
-        return merged(xw, self.domain.wrap(p[:, :d]))
+        self._own(merged(self.xu, got["x"]), merged(self.ids, ids_in),
+                  merged(self.diam, got["diam"]), merged(self.v, got["v"]))
+        return merged(xw, self.domain.wrap(got["x"]))
 
     def _plan(self, xw):
         """Ghosts, the force arrays and the pair list for the owned rows, whose wrapped
@@ -166,7 +169,7 @@ class SlabEngine:
         low[mine] = np.arange(n_own)
         self.pi, self.pj = kernels.slab_pairs(np.concatenate([xw, halo.x]), self.L, self.cut,
                                               np.concatenate([np.arange(n_own), row]), gid,
-                                              kinds, low, cap)
+                                              kinds, low, cap, self.scratch)
         self._ghost_plan(halo, foreign)
         self._arrays(*(a[foreign] for a in halo.values))
 
@@ -192,7 +195,7 @@ class SlabEngine:
         search (kernels.cell_pair_lists, the serial kernel's) lists the pairs, rows = ids
         (sorted), in (i, j) order, with no halo.  False when that search does not apply (fewer
         than 3 cells a side; no compiled library): the slab search serves then."""
-        got = kernels.cell_pair_lists(xw, self.L, self.cut, 0, len(self.ids), cap)
+        got = kernels.cell_pair_lists(xw, self.L, self.cut, 0, len(self.ids), cap, self.scratch)
         if got is None:
             return False
         self.pi, self.pj = got
