@@ -54,7 +54,8 @@ def worker(args):
     n = args.n[0]
     pack = random_packing(args.dim, n, args.phi, 2.0, "mono", 1.4,
                           np.random.default_rng(args.seed))
-    ff = ForceField(comm, pack.diam, pack.L, args.dim, 2.0)
+    skin = None if args.skin is None else args.skin * float(np.min(pack.diam))
+    ff = ForceField(comm, pack.diam, pack.L, args.dim, 2.0, skin=skin)
     ff.set_positions(pack.pos)
     del pack
     fire(ff, 0.0, params=FireParams(max_steps=args.warm))
@@ -131,6 +132,8 @@ def run_one(tree, ranks, args, n):
            "--dim", str(args.dim), "--phi", str(args.phi), "--steps", str(args.steps),
            "--warm", str(args.warm), "--seed", str(args.seed)] + (["--steady"] if args.steady
                                                                    else [])
+    if args.skin is not None:
+        cmd += ["--skin", str(args.skin)]
     if ranks > 1:
         cmd = mpirun + ["-n", str(ranks)] + cmd
     env = dict(os.environ, PYTHONPATH=tree, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
@@ -160,6 +163,9 @@ def main():
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--old", default=None, help="git revision or checkout to compare with")
     ap.add_argument("--json", default=None, help="write all runs and medians here")
+    ap.add_argument("--skin", type=float, default=None,
+                    help="neighbour-list skin in units of the smallest diameter (default: the "
+                         "engine's, 0.2)")
     ap.add_argument("--steady", action="store_true",
                     help="time each step alone at a fixed dt and report its 10th percentile "
                          "(the steps no other job interrupted) instead of FIRE's mean")
