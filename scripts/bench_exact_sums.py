@@ -1,0 +1,110 @@
+#!/usr/bin/env python3
+"""What the exact sums cost the fused FIRE step (docs/results/pack-ranks.md), in one tree: the
+compiled kernels as they are against a copy whose sums over particles are plain double sums
+(the energy summed in pair order, F.v, |F|^2 and |v|^2 accumulated in doubles: what a
+rank-dependent kernel would do), and a copy without the displacement check of the sums.
+Both copies are made from parjam/pack/_kernels.c by textual substitution (the script stops if
+the source no longer holds the text it replaces) and compiled with the same flags; every
+variant runs the same steps on the same state, interleaved, repeated.  One core, no MPI.
+
+    .venv/bin/python scripts/bench_exact_sums.py --n 16384 65536 --repeat 7
+"""
+
+import argparse
+import ctypes
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from parjam.pack import kernels  # noqa: E402
+from parjam.pack.randomstart import random_packing  # noqa: E402
+
+SRC = os.path.join(ROOT, "parjam", "pack", "_kernels.c")
+
+PLAIN = [  # (old, new): the exact accumulators replaced by double sums
+    ("forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f, ae);",
+     "const double e_plain = forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f,"
+     " NULL);"),
+    ("            xacc_add(ap, p);\n            xacc_add(af, fk);\n            xacc_add(av, vk);",
+     "            s_p += p;\n            s_f += fk;\n            s_v += vk;"),
+    ("double fm = 0.0, vm = 0.0;\n        int64_t since = 0;",
+     "double fm = 0.0, vm = 0.0, s_p = 0.0, s_f = 0.0, s_v = 0.0;\n        int64_t since = 0;"),
+    ("acc[FIRE_ACC - 3] = max_bits(fm);",
+     "acc[0] = max_bits(e_plain + s_p + s_f + s_v);\n        acc[FIRE_ACC - 3] = max_bits(fm);"),
+]
+NO_DISP = [("acc[FIRE_ACC - 1] = max_bits(max_displacement2(nown, d, x, ref, L));",
+            "acc[FIRE_ACC - 1] = 0;")]
+
+
+def variant(text, subs):
+    for old, new in subs:
+        if old not in text:
+            raise SystemExit(f"_kernels.c no longer holds {old[:60]!r}: update this script")
+        text = text.replace(old, new)
+    return text
+
+
+def compiled(text, folder, name):
+    src, so = os.path.join(folder, name + ".c"), os.path.join(folder, name + ".so")
+    with open(src, "w") as fh:
+        fh.write(text)
+    subprocess.run(["cc", *kernels.CFLAGS, "-shared", "-o", so, src, "-lm"], check=True)
+    fn = ctypes.CDLL(so).parjam_fire_step
+    vp, dbl, i64 = ctypes.c_void_p, ctypes.c_double, ctypes.c_int64
+    fn.restype = ctypes.c_int
+    fn.argtypes = [ctypes.c_int, i64, i64, ctypes.c_int, vp, vp, vp, vp, dbl, dbl, ctypes.c_int,
+                   dbl, dbl, dbl, dbl, i64, vp, vp, vp, vp, dbl, dbl, i64, i64, vp]
+    return fn
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, nargs="+", default=[16384, 65536])
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--repeat", type=int, default=7)
+    args = ap.parse_args()
+    text = open(SRC).read()
+    names = {"exact (as built)": [], "plain double sums": PLAIN,
+             "exact, no displacement in the sums": NO_DISP}
+    with tempfile.TemporaryDirectory(prefix="parjam-exact-") as tmp:
+        fns = {k: compiled(variant(text, subs), tmp, f"v{i}")
+               for i, (k, subs) in enumerate(names.items())}
+        print(f"load average {os.getloadavg()[0]:.1f}")
+        for n in args.n:
+            pack = random_packing(3, n, 0.70, 2.0, "mono", 1.4, np.random.default_rng(0))
+            x0, diam, L = pack.pos.copy(), pack.diam.copy(), pack.L
+            pi, pj = kernels.cell_pair_lists(np.mod(x0, L), L, diam.max() + 0.2 * diam.min(),
+                                             0, n)
+            times = {k: [] for k in fns}
+            for _ in range(args.repeat):
+                for k, fn in fns.items():
+                    x, v, f = x0.copy(), np.zeros_like(x0), np.zeros_like(x0)
+                    ref, acc = x0.copy(), np.zeros(kernels.FIRE_ACC, dtype=np.int64)
+
+                    def call(mode):
+                        return fn(mode, n, n, 3, x.ctypes.data, v.ctypes.data, f.ctypes.data,
+                                  ref.ctypes.data, L, 0.01, 0, 0.0, 0.99, 0.001, 0.0, len(pi),
+                                  pi.ctypes.data, pj.ctypes.data, x.ctypes.data,
+                                  diam.ctypes.data, 2.0, 1.0, 0, n, acc.ctypes.data)
+
+                    call(kernels.FIRE_FORCES)
+                    t = time.perf_counter()
+                    for _ in range(args.steps):
+                        call(kernels.FIRE_UPDATE | kernels.FIRE_FORCES)
+                    times[k].append((time.perf_counter() - t) / args.steps)
+            base = np.median(times["plain double sums"])
+            for k, t in times.items():
+                print(f"N = {n}: {k:36s} {1e3 * np.median(t):7.3f} ms/step "
+                      f"({np.median(t) / base:.3f}x of plain sums)")
+        print(f"load average {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()
