@@ -39,3 +39,19 @@ def test_cell_search_at_three_cells_a_side():
     got = kernels.cell_pairs(pos, L, cut, 0, 120)
     assert got is not None and len(got) > 100
     assert np.array_equal(got, neighbour_pairs(pos, L, cut))
+
+
+def test_a_scratch_reused_by_searches_of_other_sizes_changes_nothing():
+    """The engine keeps one kernels.Scratch for all its rebuilds: searches of a larger, then a
+    smaller, then a 2D box through the same work arrays (stale contents, longer than needed,
+    regrown) give the pairs of searches with fresh arrays, and the k-d tree's."""
+    if kernels.library() is None:
+        pytest.fail("the compiled kernels are not available (a C compiler is part of the setup)")
+    scratch = kernels.Scratch()
+    for d, n, phi in [(3, 900, 0.66), (3, 300, 0.66), (2, 700, 0.84), (3, 1500, 0.66)]:
+        pack = random_packing(d, n, phi, 2.0, "mono", 1.4, np.random.default_rng(n))
+        pos, cut = wrap(pack.pos, pack.L), 1.2 * pack.diam.max()
+        reused = kernels.cell_pair_lists(pos, pack.L, cut, 0, n, 4 * n, scratch)
+        fresh = kernels.cell_pair_lists(pos, pack.L, cut, 0, n)
+        assert np.array_equal(np.stack(reused, axis=1), np.stack(fresh, axis=1)), (d, n)
+        assert np.array_equal(np.stack(reused, axis=1), neighbour_pairs(pos, pack.L, cut))
