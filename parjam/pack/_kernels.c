@@ -424,7 +424,7 @@ static void bucket_by_cell(int64_t n, int64_t ncells, const int64_t *cellof, int
  * cells is met exactly once.  The neighbours are taken a row at a time: the cells along the
  * last axis are contiguous in cell order, so the three neighbours (t, m-1 .. m+1) of a row are
  * one run of points (two or three runs where the row wraps around the periodic boundary), with
- * the periodic image shift applied per run -- 5 runs per cell in 3D (3 in 2D) instead of 14
+ * the periodic image shift applied per run -- 5 runs per cell in 3D (2 in 2D) instead of 14
  * (5) cells, each candidate one distance and no branch.  Out come the pairs within the cutoff
  * as cell-order indices (ta, tb), unsorted; the callers put them into the global (i, j) order
  * the force sums need (a counting sort by the lower end, then each short row by the upper
