@@ -121,6 +121,27 @@ def test_pairs_from_owned_and_ghosts_are_the_systems_pairs(d, empty):
         assert len(ids) == 0
 
 
+def test_fold_is_wrap_to_the_last_bit_and_owner_agrees():
+    """``fold`` (x - L floor(x / L), the searches' fast wrap) lands in [0, L], within a few ulps
+    of L of np.mod, far-away images and coordinates a hair either side of 0 and L included; the
+    owner of folded positions is the owner of the unfolded ones."""
+    L = np.array([7.3, 5.1, 9.7])
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-3.0, 4.0, (4000, 3)) * L
+    tiny = np.array([-1e-17, -5e-324, 0.0, 1e-300])
+    x[:4] = tiny[:, None]
+    x[4:8] = L - tiny[:, None]
+    dom = SlabDomain.balanced(COMM, L, x)
+    f = dom.fold(x)
+    assert np.all((f >= 0.0) & (f <= L))
+    w = dom.wrap(x)
+    gap = np.abs(f - w)
+    gap = np.minimum(gap, np.abs(gap - L))  # 0 and L are the same place
+    assert np.all(gap <= 8 * np.spacing(L))
+    away = np.all(np.minimum(f, L - f) > 1e-9 * L, axis=1)  # not on a face: the same owner
+    assert np.array_equal(dom.owner(f, folded=True)[away], dom.owner(x)[away])
+
+
 def test_bad_width_and_bounds_are_refused():
     L = np.full(3, 4.0)
     x = np.random.default_rng(0).uniform(0, 4.0, (40, 3))
