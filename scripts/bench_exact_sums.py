@@ -2,12 +2,13 @@
 """What the exact sums cost the fused FIRE step (docs/results/pack-ranks.md), in one tree: the
 compiled kernels as they are against a copy whose sums over particles are plain double sums
 (the energy summed in pair order, F.v, |F|^2 and |v|^2 accumulated in doubles: what a
-rank-dependent kernel would do), and a copy without the displacement check of the sums.
-Both copies are made from parjam/pack/_kernels.c by textual substitution (the script stops if
-the source no longer holds the text it replaces) and compiled with the same flags; every
-variant runs the same steps on the same state, interleaved, repeated.  One core, no MPI.
+rank-dependent kernel would do), and, with ``--old REV``, the kernels of commit REV (its
+parjam/pack/_kernels.c from git; the same signature) -- the baseline a change is measured
+against.  The plain copy is made from parjam/pack/_kernels.c by textual substitution (the script
+stops if the source no longer holds the text it replaces); all are compiled with the same flags
+and every variant runs the same steps on the same state, interleaved, repeated.  One core, no MPI.
 
-    .venv/bin/python scripts/bench_exact_sums.py --n 16384 65536 --repeat 7
+    .venv/bin/python scripts/bench_exact_sums.py --n 16384 65536 --alpha 2 2.5 --old f0a4ae0
 """
 
 import argparse
@@ -39,8 +40,6 @@ PLAIN = [  # (old, new): the exact accumulators replaced by double sums
     ("acc[FIRE_ACC - 3] = max_bits(fm);",
      "acc[0] = max_bits(e_plain + s_p + s_f + s_v);\n        acc[FIRE_ACC - 3] = max_bits(fm);"),
 ]
-NO_DISP = [("acc[FIRE_ACC - 1] = max_bits(max_displacement2(nown, d, x, ref, L));",
-            "acc[FIRE_ACC - 1] = 0;")]
 
 
 def variant(text, subs):
@@ -69,16 +68,21 @@ def main():
     ap.add_argument("--n", type=int, nargs="+", default=[16384, 65536])
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--old", metavar="REV", help="also time the kernels of commit REV")
+    ap.add_argument("--alpha", type=float, nargs="+", default=[2.0],
+                    help="contact laws (2: harmonic, 2.5: Hertz; default 2)")
     args = ap.parse_args()
     text = open(SRC).read()
-    names = {"exact (as built)": [], "plain double sums": PLAIN,
-             "exact, no displacement in the sums": NO_DISP}
+    texts = {"exact (as built)": text, "plain double sums": variant(text, PLAIN)}
+    if args.old:
+        texts[f"exact at {args.old}"] = subprocess.run(
+            ["git", "-C", ROOT, "show", f"{args.old}:parjam/pack/_kernels.c"], check=True,
+            capture_output=True, text=True).stdout
     with tempfile.TemporaryDirectory(prefix="parjam-exact-") as tmp:
-        fns = {k: compiled(variant(text, subs), tmp, f"v{i}")
-               for i, (k, subs) in enumerate(names.items())}
+        fns = {k: compiled(t, tmp, f"v{i}") for i, (k, t) in enumerate(texts.items())}
         print(f"load average {os.getloadavg()[0]:.1f}")
-        for n in args.n:
-            pack = random_packing(3, n, 0.70, 2.0, "mono", 1.4, np.random.default_rng(0))
+        for n, alpha in ((n, a) for n in args.n for a in args.alpha):
+            pack = random_packing(3, n, 0.70, alpha, "mono", 1.4, np.random.default_rng(0))
             x0, diam, L = pack.pos.copy(), pack.diam.copy(), pack.L
             pi, pj = kernels.cell_pair_lists(np.mod(x0, L), L, diam.max() + 0.2 * diam.min(),
                                              0, n)
@@ -92,7 +96,7 @@ def main():
                         return fn(mode, n, n, 3, x.ctypes.data, v.ctypes.data, f.ctypes.data,
                                   ref.ctypes.data, L, 0.01, 0, 0.0, 0.99, 0.001, 0.0, len(pi),
                                   pi.ctypes.data, pj.ctypes.data, x.ctypes.data,
-                                  diam.ctypes.data, 2.0, 1.0, 0, n, acc.ctypes.data)
+                                  diam.ctypes.data, alpha, 1.0, 0, n, acc.ctypes.data)
 
                     call(kernels.FIRE_FORCES)
                     t = time.perf_counter()
@@ -101,7 +105,7 @@ def main():
                     times[k].append((time.perf_counter() - t) / args.steps)
             base = np.median(times["plain double sums"])
             for k, t in times.items():
-                print(f"N = {n}: {k:36s} {1e3 * np.median(t):7.3f} ms/step "
+                print(f"N = {n}, alpha = {alpha:g}: {k:24s} {1e3 * np.median(t):7.3f} ms/step "
                       f"({np.median(t) / base:.3f}x of plain sums)")
         print(f"load average {os.getloadavg()[0]:.1f}")
 

@@ -220,6 +220,7 @@ class SlabEngine:
         self.f = self.f_all[:n_own]
         self.pdiam = np.concatenate([self.diam, g_diam])
         self.ref = self.xu.copy()
+        self.acc[-1] = 0  # the displacement since the list was built (the update keeps it)
         self.kernel = kernels.FireKernel(self.pos, self.v_all, self.f_all, self.ref, self.pi,
                                          self.pj, self.pos, self.pdiam, self.acc, nown=n_own)
 

@@ -236,11 +236,13 @@ def fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi, 
         v += dt * f
         v[:] = mix_f * f + mix_v * v
         x += dt * v
-        if stale2 > 0.0 and _max_disp2(x[:nown], ref, L) >= stale2:
+        disp2 = _max_disp2(x[:nown], ref, L)
+        acc[FIRE_ACC - 1:] = np.array([disp2]).view(np.int64)
+        if stale2 > 0.0 and disp2 >= stale2:
             return 1
     if mode & FIRE_FORCES:
         n = exactsum.ACC_LEN
-        acc[:] = 0
+        acc[:FIRE_ACC - 1] = 0  # the displacement (last) is the update's, or the caller's
         x, v, f = x[:nown], v[:nown], f[:nown]
         pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, f, acc[:n])
         p, f2, v2 = (np.zeros(len(x)) for _ in range(3))
@@ -250,8 +252,8 @@ def fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi, 
             v2 += v[:, a] * v[:, a]
         for k, part in enumerate((p, f2, v2)):
             exactsum.partial(part, acc[(k + 1) * n:(k + 2) * n])
-        acc[FIRE_ACC - 3:] = np.array([f2.max(initial=0.0), v2.max(initial=0.0),
-                                       _max_disp2(x, ref, L)]).view(np.int64)
+        acc[FIRE_ACC - 3:FIRE_ACC - 1] = np.array([f2.max(initial=0.0),
+                                                   v2.max(initial=0.0)]).view(np.int64)
     return 0
 
 
