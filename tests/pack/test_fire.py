@@ -117,23 +117,27 @@ def test_fire2_rules_initial_delay_and_dt_min():
     assert control(plain, -1.0, 25, 1.5e-4, 0.2, 0) == (True, 1e-4, 0.1, 0)
 
 
-def test_numpy_fallback_warns_once_and_gives_the_same_forces(monkeypatch, capsys):
+@pytest.mark.parametrize("d,alpha", [(3, 2.5), (2, 2.5), (3, 2.0), (2, 2.0), (3, 3.0), (2, 1.5)])
+def test_numpy_fallback_warns_once_and_gives_the_same_forces(d, alpha, monkeypatch, capsys):
     """With PARJAM_KERNELS=numpy the kernels fall back to numpy, say so once on stderr, and the
-    forces, energy and fused step agree with the compiled ones to round-off."""
+    forces, energy and fused step agree with the compiled ones to round-off -- for each of the
+    compiled loops: harmonic, Hertz (delta sqrt(delta) for delta^1.5) and any alpha (pow), in
+    2D and 3D."""
     if kernels.library() is None:
         pytest.fail("the compiled kernels are not available (a C compiler is part of the setup)")
-    pack = random_packing(3, 300, 0.7, 2.5, "poly", 1.3, np.random.default_rng(8))
+    pack = random_packing(d, 300, 0.7 if d == 3 else 0.88, alpha, "poly", 1.3,
+                          np.random.default_rng(8))
     pairs = neighbour_pairs(pack.pos, pack.L, pack.diam.max() * 1.2)
     pi, pj = np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1])
     v0 = 1e-2 * np.random.default_rng(2).standard_normal(pack.pos.shape)
 
     def compute():
         out = np.zeros_like(pack.pos)
-        e = kernels.pair_forces(pi, pj, pack.pos, pack.diam, pack.L, 2.5, 1.0, 0, pack.n, out)
+        e = kernels.pair_forces(pi, pj, pack.pos, pack.diam, pack.L, alpha, 1.0, 0, pack.n, out)
         x, v, f = pack.pos.copy(), v0.copy(), out.copy()
         acc = np.zeros(kernels.FIRE_ACC, dtype=np.int64)
         kernels.fire_step(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, x, v, f, pack.pos, pack.L,
-                          0.05, False, -0.025, 0.9, 0.2, 0.0, pi, pj, x, pack.diam, 2.5, 1.0,
+                          0.05, False, -0.025, 0.9, 0.2, 0.0, pi, pj, x, pack.diam, alpha, 1.0,
                           0, pack.n, acc)
         return e, out, x, f, kernels.fire_sums(acc)
 
