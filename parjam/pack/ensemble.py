@@ -55,7 +55,8 @@ def member_states(args, member, comm, progress, checkpoint=None, start=None):
                 stopped = exc
                 for st in states:
                     st.info["ladder_unjammed_at"] = exc.step
-            resolution_flags(states, resolution, f"{member_name(member)} ")
+            resolution_flags(states, resolution, f"{member_name(member)} ",
+                             speak=comm.getRank() == 0)
             virial_flags(states)
         totals = {"fire_steps": jammer.total_fire, "newton_steps": jammer.total_newton,
                   "force_evaluations": jammer.ff.n_force_calls}
@@ -97,9 +98,10 @@ def find_phi_c(jammer, args, progress):
     return phi_c, ([] if args.no_phic_file else [phic]), "ohern-bisection", resolution
 
 
-def resolution_flags(states, resolution, label_prefix):
-    """Record the resolution of phi_c in every state and flag (file and one line on stderr)
-    each requested dphi that it does not resolve to RESOLVED_FRACTION."""
+def resolution_flags(states, resolution, label_prefix, speak=True):
+    """Record the resolution of phi_c in every state and flag (file, and one line on stderr if
+    ``speak``: the member's rank 0) each requested dphi that it does not resolve to
+    RESOLVED_FRACTION."""
     for st in states:
         st.info["phi_c_resolution"] = resolution
         dphi = st.info.get("dphi")
@@ -107,7 +109,7 @@ def resolution_flags(states, resolution, label_prefix):
             continue
         ok = resolution <= RESOLVED_FRACTION * dphi
         st.info["dphi_resolved"] = int(ok)
-        if not ok:
+        if not ok and speak:
             warn(f"{label_prefix}{st.label}: dphi = {dphi:.1e} is below what phi_c resolves "
                   f"(+- {resolution:.1e}; needs dphi >= {resolution / RESOLVED_FRACTION:.1e} for "
                   f"{RESOLVED_FRACTION:.0%}): its label is not reliable (dphi_resolved = 0 in "

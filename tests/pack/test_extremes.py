@@ -291,6 +291,31 @@ def test_virial_dphi_disagreeing_with_the_label_is_flagged(ladder, capsys):
     assert members.label_line(rows).startswith("labels: 1 state(s) re-jammed")
 
 
+def test_unresolved_dphi_is_flagged_in_one_line_by_the_speaking_rank(ladder, capsys):
+    """A state whose dphi phi_c does not resolve (resolution above RESOLVED_FRACTION of it) is
+    recorded with dphi_resolved = 0, the others with 1; the line on stderr comes once, from the
+    rank that speaks (a member shared by P ranks printed it P times before)."""
+    from parjam.pack import ensemble
+
+    d, (phi_c, packs) = ladder
+    self_comm = env.petsc().COMM_SELF
+
+    def states():
+        return [packing.State(packing.block_rows(self_comm, p), MinResult("converged", 0.0, 0.0),
+                              f"dphi{dphi:.1e}", {"phi_c": phi_c, "dphi": dphi})
+                for dphi, p in zip(DPHIS, packs)]
+
+    resolution = 2.0 * packing.RESOLVED_FRACTION * min(DPHIS)  # resolves all but the smallest
+    capsys.readouterr()
+    for speak, lines in ((True, 1), (False, 0)):
+        sts = states()
+        ensemble.resolution_flags(sts, resolution, "member 1 ", speak=speak)
+        err = capsys.readouterr().err
+        assert err.count("\n") == lines and err.count("below what phi_c resolves") == lines
+        assert [st.info["dphi_resolved"] for st in sts] == [int(dp > min(DPHIS)) for dp in DPHIS]
+        assert all(st.info["phi_c_resolution"] == resolution for st in sts)
+
+
 def test_unjammed_ladder_step_keeps_the_jammed_states(shared_tmp, monkeypatch, capsys):
     """A ladder step that unjams (here: its energy floor raised above any jammed state, through
     the public Jammer.energy_floor) ends the member's ladder there: the states before it are
