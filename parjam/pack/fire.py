@@ -163,7 +163,7 @@ def fire_unfused(ff, ftol, params=None, max_steps=None):
     """The same FIRE as ``fire`` (no snapshots, no e_stop) step by step in PETSc Vec operations
     and separate reductions (three dots/norms, a max-norm, the energy), as parjam ran it before
     the fused step: the reference the fused step is tested and benchmarked against
-    (tests/pack/test_fire.py, scripts/bench_fire_step.py).  Returns (MinResult, steps)."""
+    (tests/pack/test_fire.py).  Returns (MinResult, steps)."""
     p = params or FireParams()
     f, v = ff.vec(), ff.vec()
     v.set(0.0)
