@@ -33,10 +33,14 @@ PLAIN = [  # (old, new): the exact accumulators replaced by double sums
     ("forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f, ae);",
      "const double e_plain = forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f,"
      " NULL);"),
-    ("            xacc_add(ap, p);\n            xacc_add(af, fk);\n            xacc_add(av, vk);",
-     "            s_p += p;\n            s_f += fk;\n            s_v += vk;"),
-    ("double fm = 0.0, vm = 0.0;\n        int64_t since = 0;",
-     "double fm = 0.0, vm = 0.0, s_p = 0.0, s_f = 0.0, s_v = 0.0;\n        int64_t since = 0;"),
+    ("                bp[b] = p;\n                bf[b] = fk;\n                bv[b] = vk;\n"
+     "                const double ab = fabs(p);\n                pb = ab > pb ? ab : pb;\n",
+     "                s_p += p;\n                s_f += fk;\n                s_v += vk;\n"),
+    ("            xacc_flush(ap, bp, n, pb, fast, &adds_p);\n"
+     "            xacc_flush(af, bf, n, fb, fast, &adds_f);\n"
+     "            xacc_flush(av, bv, n, vb, fast, &adds_v);\n", ""),
+    ("double fm = 0.0, vm = 0.0, bp[XBLOCK]",
+     "double s_p = 0.0, s_f = 0.0, s_v = 0.0, fm = 0.0, vm = 0.0, bp[XBLOCK]"),
     ("acc[FIRE_ACC - 3] = max_bits(fm);",
      "acc[0] = max_bits(e_plain + s_p + s_f + s_v);\n        acc[FIRE_ACC - 3] = max_bits(fm);"),
 ]

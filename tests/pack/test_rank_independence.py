@@ -71,6 +71,56 @@ def test_exact_sum_is_math_fsum(compiled, monkeypatch):
     assert np.isnan(exactsum.value(exactsum.partial([np.nan, 1.0])))
 
 
+def block_values(rng):
+    """Blocks of values for the compiled accumulator's fast path (parjam/pack/_kernels.c:
+    blocks of 256 split on two grids below the block's largest magnitude, the rest value by
+    value): each case is one kind of block, several blocks long, with a ragged end."""
+    n = 3 * 256 + 37
+    x = rng.standard_normal(n)
+    tiny = x.copy()
+    tiny[rng.integers(0, n, 20)] *= 2.0 ** -60  # bits beyond both grids: the remainder path
+    spread = x * 2.0 ** rng.integers(-36, 1, n)  # within the two grids
+    grid = np.ldexp(rng.integers(-2**52, 2**52, n).astype(float), rng.integers(-80, -30, n))
+    ties = 1.0 + rng.integers(0, 2, n) * 2.0 ** -45 + rng.integers(0, 2, n) * 2.0 ** -44
+    cases = {
+        "normal": x, "tiny": tiny, "spread": spread, "grid": grid,
+        "ties": np.concatenate([ties, -ties[:100]]),
+        "cancel": np.concatenate([x, -x[::-1]]),
+        "zeros": np.concatenate([np.zeros(300), -np.zeros(300), [2.0 ** -1074]]),
+        "subnormal": np.concatenate([x * 2.0 ** -1000, np.ldexp(x, -1060)]),
+        "top": x * 2.0 ** 900, "over top": x * 2.0 ** 902,
+        "bottom": x * 2.0 ** -899, "below bottom": x * 2.0 ** -902,
+        "nan": np.concatenate([x, [np.nan]]), "inf": np.concatenate([x, [np.inf], x]),
+        "both inf": np.concatenate([x, [np.inf, -np.inf]]),
+        "huge": np.concatenate([x, [8e307, 8e307, -8e307]]),
+    }
+    return cases
+
+
+@pytest.mark.parametrize("case", list(block_values(np.random.default_rng(0))))
+def test_compiled_blocks_are_the_exact_sum(case):
+    """The compiled accumulator (blocks on two grids) and the numpy one (each value split into
+    its chunks) hold the same integers for every kind of block, and round to math.fsum (IEEE's
+    sum where there are infinities or NaNs), whole or cut anywhere into pieces."""
+    if exactsum.compiled() is None:
+        pytest.fail("the compiled kernels are not available (a C compiler is part of the setup)")
+    rng = np.random.default_rng(5)
+    v = block_values(rng)[case]
+    for order in (v, rng.permutation(v)):
+        acc = exactsum.partial(order)
+        cut = rng.integers(0, len(order) + 1)
+        assert np.array_equal(exactsum.partial(order[cut:], exactsum.partial(order[:cut])), acc)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(exactsum, "compiled", lambda: None)
+            ref = exactsum.partial(order)
+        assert np.array_equal(acc, ref)
+        if np.all(np.isfinite(order)):
+            assert exactsum.value(acc) == math.fsum(order)
+        else:
+            assert np.array_equal(exactsum.value(acc), np.sum(order[~np.isfinite(order)]),
+                                  equal_nan=True)
+
+
 def test_sums_over_ranks_are_math_fsum_of_all_values():
     """Each rank holds an uneven slice of the same values: totals over the ranks equal math.fsum
     of all of them (and a naive sum over the ranks would not, for these values)."""
