@@ -4,7 +4,8 @@ compiled kernels as they are against a copy whose sums over particles are plain 
 (the energy summed in pair order, F.v, |F|^2 and |v|^2 accumulated in doubles: what a
 rank-dependent kernel would do), and, with ``--old REV``, the kernels of commit REV (its
 parjam/pack/_kernels.c from git; the same signature) -- the baseline a change is measured
-against.  The plain copy is made from parjam/pack/_kernels.c by textual substitution (the script
+against.  "exact, energy not asked" is the step as FIRE runs it when no stopping energy is set
+(FIRE_FORCES without FIRE_ENERGY: the energy is summed only where progress or the end needs it).  The plain copy is made from parjam/pack/_kernels.c by textual substitution (the script
 stops if the source no longer holds the text it replaces); all are compiled with the same flags
 and every variant runs the same steps on the same state, interleaved, repeated.  One core, no MPI.
 
@@ -30,7 +31,8 @@ from parjam.pack.randomstart import random_packing  # noqa: E402
 SRC = os.path.join(ROOT, "parjam", "pack", "_kernels.c")
 
 PLAIN = [  # (old, new): the exact accumulators replaced by double sums
-    ("forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f, ae);",
+    ("forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f,\n"
+     "               (mode & FIRE_ENERGY) ? ae : NULL);",
      "const double e_plain = forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f,"
      " NULL);"),
     ("                bp[b] = p;\n                bf[b] = fk;\n                bv[b] = vk;\n"
@@ -84,6 +86,10 @@ def main():
             capture_output=True, text=True).stdout
     with tempfile.TemporaryDirectory(prefix="parjam-exact-") as tmp:
         fns = {k: compiled(t, tmp, f"v{i}") for i, (k, t) in enumerate(texts.items())}
+        step = kernels.FIRE_UPDATE | kernels.FIRE_FORCES
+        modes = {k: step | kernels.FIRE_ENERGY for k in fns}  # older kernels ignore the bit
+        fns["exact, energy not asked"] = fns["exact (as built)"]
+        modes["exact, energy not asked"] = step
         print(f"load average {os.getloadavg()[0]:.1f}")
         for n, alpha in ((n, a) for n in args.n for a in args.alpha):
             pack = random_packing(3, n, 0.70, alpha, "mono", 1.4, np.random.default_rng(0))
@@ -102,10 +108,10 @@ def main():
                                   pi.ctypes.data, pj.ctypes.data, x.ctypes.data,
                                   diam.ctypes.data, alpha, 1.0, 0, n, acc.ctypes.data)
 
-                    call(kernels.FIRE_FORCES)
+                    call(modes[k] & ~kernels.FIRE_UPDATE)
                     t = time.perf_counter()
                     for _ in range(args.steps):
-                        call(kernels.FIRE_UPDATE | kernels.FIRE_FORCES)
+                        call(modes[k])
                     times[k].append((time.perf_counter() - t) / args.steps)
             base = np.median(times["plain double sums"])
             for k, t in times.items():

@@ -518,7 +518,7 @@ static double update(int64_t nown, int64_t nall, int d, double *x, double *v, co
 #undef PJ_UPDATE
 }
 
-enum { FIRE_UPDATE = 1, FIRE_FORCES = 2 };
+enum { FIRE_UPDATE = 1, FIRE_FORCES = 2, FIRE_ENERGY = 4 };
 
 /* One FIRE step on the nown owned particles (x, v, f: nall x d, C order, the owned rows first;
  * the nall - nown rows after them are other ranks' particles, ghosts, updated alike).
@@ -535,8 +535,9 @@ enum { FIRE_UPDATE = 1, FIRE_FORCES = 2 };
  *
  * FIRE_FORCES: the forces on the owned particles from the pairs over ``pos`` (the owned block is
  * [lo, hi) of pos; on one rank pos is x itself), then the step's sums over the owned particles
- * into ``acc`` (FIRE_ACC int64): exact accumulators (XACC_LEN each, normalised) of the energy,
- * F.v, |F|^2 and |v|^2, each summed per particle first (its pairs, its d components, in a fixed
+ * into ``acc`` (FIRE_ACC int64): exact accumulators (XACC_LEN each, normalised) of the energy
+ * (with FIRE_ENERGY, else left 0: FIRE decides on the others, and the energy's sum costs ~4 %
+ * of a step), F.v, |F|^2 and |v|^2, each summed per particle first (its pairs, its d components, in a fixed
  * order), then the maxima of |F_i|^2 and |v_i|^2 as the bits of the non-negative doubles
  * (ordered as int64).  The last entry, the displacement^2, is left as it is: the update's, or
  * the caller's (0 when the list was just built, so ref = x).  The ranks' buffers are reduced by
@@ -568,7 +569,8 @@ int parjam_fire_step(int mode, int64_t nown, int64_t nall, int d, double *x, dou
             acc[k] = 0;
         int64_t *ae = acc, *ap = acc + XACC_LEN, *af = acc + 2 * XACC_LEN;
         int64_t *av = acc + 3 * XACC_LEN;
-        forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f, ae);
+        forces(npairs, pi, pj, pos, diam, L, d, alpha, eps, lo, hi, f,
+               (mode & FIRE_ENERGY) ? ae : NULL);
         double fm = 0.0, vm = 0.0, bp[XBLOCK], bf[XBLOCK], bv[XBLOCK];
         const int fast = xblock_fast();
         int64_t adds_p = 0, adds_f = 0, adds_v = 0;

@@ -50,12 +50,13 @@ TAG = 7103  # the point-to-point messages of the ghosts' forces
 
 
 class FireSums:
-    """The global sums of one fused FIRE step (kernels.fire_sums of the reduced buffer)."""
+    """The global sums of one fused FIRE step (kernels.fire_sums of the reduced buffer); the
+    energy is NaN when the step was not asked for it."""
 
     __slots__ = ("energy", "power", "f2", "v2", "fmax", "vmax", "disp")
 
-    def __init__(self, s):
-        self.energy, self.power = float(s[0]), float(s[1])
+    def __init__(self, s, energy=True):
+        self.energy, self.power = float(s[0]) if energy else float("nan"), float(s[1])
         self.f2, self.v2 = float(s[2]), float(s[3])
         self.fmax, self.vmax, self.disp = (float(np.sqrt(s[4])), float(np.sqrt(s[5])),
                                            float(np.sqrt(s[6])))
@@ -229,28 +230,36 @@ class SlabEngine:
         return len(self.ids)
 
     # --- forces and the fused FIRE step ---------------------------------------------------------
-    def start(self):
-        """Forces at the current positions and the global FireSums (collective).  Positions
-        or velocities changed from outside (``xu``, ``v``) need a ``rebuild()`` first."""
-        self._call(kernels.FIRE_FORCES, 0.0, False, 0.0, 1.0, 0.0)
-        return self._exchange()
+    def start(self, energy=True):
+        """Forces at the current positions and the global FireSums (collective; the energy
+        too unless ``energy`` is False).  Positions or velocities changed from outside (``xu``,
+        ``v``) need a ``rebuild()`` first.  Called again at the same positions it gives the same
+        forces and sums, bit for bit."""
+        self._call(self._forces(energy), 0.0, False, 0.0, 1.0, 0.0)
+        return self._exchange(energy)
 
-    def step(self, dt, reset, mix_v, mix_f, last):
+    @staticmethod
+    def _forces(energy):
+        return kernels.FIRE_FORCES | (kernels.FIRE_ENERGY if energy else 0)
+
+    def step(self, dt, reset, mix_v, mix_f, last, energy=True):
         """One FIRE step (see ``parjam_fire_step``): if ``reset`` step half back and zero v;
         v += dt F; v = mix_v v + mix_f F; x += dt v (owned particles and ghosts alike); then
         the forces at the new positions and the global FireSums (``_exchange``: one allreduce,
         the ghosts' forces alongside).  On one rank the kernel checks the displacement since the
         last rebuild itself; on several ranks the list is rebuilt when that displacement plus a
         bound on this step's (from ``last``, the previous sums) could reach half the skin, a
-        decision every rank takes alike without a reduction."""
+        decision every rank takes alike without a reduction.  ``energy`` False: the sums'
+        energy is not computed (NaN; FIRE decides on the others)."""
         back = -0.5 * dt
+        forces = self._forces(energy)
         if self.size == 1:
-            stale = self._call(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, dt, reset, back,
+            stale = self._call(kernels.FIRE_UPDATE | forces, dt, reset, back,
                                mix_v, mix_f, stale2=(0.5 * self.skin) ** 2)
             if stale:
                 self.rebuild()
-                self._call(kernels.FIRE_FORCES, dt, reset, back, mix_v, mix_f)
-            return self._exchange()
+                self._call(forces, dt, reset, back, mix_v, mix_f)
+            return self._exchange(energy)
         vmax = 0.0 if reset else last.vmax
         bound = dt * (mix_v * (vmax + dt * last.fmax) + mix_f * last.fmax)
         if reset:
@@ -258,15 +267,15 @@ class SlabEngine:
         self._call(kernels.FIRE_UPDATE, dt, reset, back, mix_v, mix_f)
         if (last.disp + bound) * (1.0 + 1e-6) >= 0.5 * self.skin:
             self.rebuild()
-        self._call(kernels.FIRE_FORCES, dt, reset, back, mix_v, mix_f)
-        return self._exchange()
+        self._call(forces, dt, reset, back, mix_v, mix_f)
+        return self._exchange(energy)
 
     def _call(self, mode, dt, reset, back, mix_v, mix_f, stale2=0.0):
         with event(FORCE):
             return self.kernel(mode, self.L, dt, reset, back, mix_v, mix_f, stale2, self.alpha,
                                self.eps, 0, self.n_own)
 
-    def _exchange(self):
+    def _exchange(self, energy):
         """The step's synchronisation (collective): the forces of the owned particles that
         other ranks hold as ghosts go to them (non-blocking, point to point) while the FIRE
         sums are reduced -- one allreduce of the kernel's buffer (integer sums of the exact
@@ -287,7 +296,7 @@ class SlabEngine:
             with event(HALO):
                 MPI.Request.Waitall(reqs)
                 np.take(self.recvbuf, self.unpack, axis=0, out=self.f_all[self.n_own:])
-        return FireSums(self.kernel.sums(self.sums))
+        return FireSums(self.kernel.sums(self.sums), energy)
 
     # --- hand-over to row blocks (lazy gathers) ------------------------------------------------
     def to_blocks(self, ranges, values):

@@ -37,6 +37,7 @@ _why = ""
 # modes of fire_step (enum in _kernels.c)
 FIRE_UPDATE = 1
 FIRE_FORCES = 2
+FIRE_ENERGY = 4  # with FIRE_FORCES: the energy's exact sum too (else left 0)
 # fire_step's sums: energy, F.v, |F|^2, |v|^2, max|F_i|^2, max|v_i|^2, max displacement^2
 N_SUMS = 7
 # fire_step's buffer of them (FIRE_ACC in _kernels.c): four exact accumulators
@@ -244,7 +245,8 @@ def fire_step(mode, x, v, f, ref, L, dt, reset, back, mix_v, mix_f, stale2, pi, 
         n = exactsum.ACC_LEN
         acc[:FIRE_ACC - 1] = 0  # the displacement (last) is the update's, or the caller's
         x, v, f = x[:nown], v[:nown], f[:nown]
-        pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, f, acc[:n])
+        pair_forces_numpy(pi, pj, pos, diam, L, alpha, eps, lo, hi, f,
+                          acc[:n] if mode & FIRE_ENERGY else None)
         p, f2, v2 = (np.zeros(len(x)) for _ in range(3))
         for a in range(x.shape[1]):  # the C loop's order over the components
             p += f[:, a] * v[:, a]

@@ -51,9 +51,9 @@ def evaluations(monkeypatch):
     for cls, name in ((ForceField, "evaluate"), (SlabEngine, "start"), (SlabEngine, "step")):
         real = getattr(cls, name)
 
-        def counting(self, *args, real=real):
+        def counting(self, *args, real=real, **kw):
             count["n"] += 1
-            return real(self, *args)
+            return real(self, *args, **kw)
 
         monkeypatch.setattr(cls, name, counting)
     return count

@@ -6,6 +6,7 @@ import pytest
 
 from parjam import env
 from parjam.pack import kernels
+from parjam.pack.engine import SlabEngine
 from parjam.pack.fire import FireParams, control, fire, fire_unfused
 from parjam.pack.forces import ForceField
 from parjam.pack.packing import random_packing
@@ -97,6 +98,37 @@ def test_fused_step_is_one_semi_implicit_euler_step_with_mixing(world):
     ref.destroy()
 
 
+def test_energy_summed_only_where_asked_changes_nothing(world):
+    """FIRE sums the energy only where a stop on it or a progress line needs it, and once at
+    the end: a run without them ends bitwise where a run that sums it every step (a stopping
+    energy that never stops it) ends, with the same energy; a step not asked for the energy
+    reports NaN and the same other sums."""
+    pack = random_packing(3, 400, 0.7, 2.0, "bi", 1.4, np.random.default_rng(5))
+    params = FireParams(max_steps=300)
+    lean, pos_lean, _ = _run(world, pack, fire, params)
+    lines = []
+
+    def every_step(ff, ftol, params):
+        return fire(ff, ftol, e_stop=-1e300, params=params, progress=lines.append)
+
+    full, pos_full, _ = _run(world, pack, every_step, params)
+    assert len(lines) == 3 and lean.fire_steps == full.fire_steps == 300
+    np.testing.assert_array_equal(pos_lean, pos_full)
+    assert lean.energy == full.energy > 0.0 and lean.fmax == full.fmax
+    mine = np.arange(world.rank, pack.n, world.size)
+
+    def engine():
+        return SlabEngine(world, pack.L, 2.0, 1.0, 0.2, pack.pos[mine], mine, pack.diam[mine])
+
+    eng = engine()
+    with_e = eng.step(0.02, False, 0.9, 0.05, eng.start(), energy=True)
+    eng = engine()
+    without = eng.step(0.02, False, 0.9, 0.05, eng.start(energy=False), energy=False)
+    assert np.isnan(without.energy) and with_e.energy > 0.0
+    for name in ("power", "f2", "v2", "fmax", "vmax", "disp"):
+        assert getattr(without, name) == getattr(with_e, name)
+
+
 def test_fire2_rules_initial_delay_and_dt_min():
     """FIRE's decisions (parjam.pack.fire.control): downhill growth after n_delay steps, and uphill
     plain FIRE halves dt and resets a at once, FIRE 2.0 not during its initial delay, and never
@@ -136,7 +168,8 @@ def test_numpy_fallback_warns_once_and_gives_the_same_forces(d, alpha, monkeypat
         e = kernels.pair_forces(pi, pj, pack.pos, pack.diam, pack.L, alpha, 1.0, 0, pack.n, out)
         x, v, f = pack.pos.copy(), v0.copy(), out.copy()
         acc = np.zeros(kernels.FIRE_ACC, dtype=np.int64)
-        kernels.fire_step(kernels.FIRE_UPDATE | kernels.FIRE_FORCES, x, v, f, pack.pos, pack.L,
+        kernels.fire_step(kernels.FIRE_UPDATE | kernels.FIRE_FORCES | kernels.FIRE_ENERGY, x,
+                          v, f, pack.pos, pack.L,
                           0.05, False, -0.025, 0.9, 0.2, 0.0, pi, pj, x, pack.diam, alpha, 1.0,
                           0, pack.n, acc)
         return e, out, x, f, kernels.fire_sums(acc)
