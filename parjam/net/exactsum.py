@@ -21,7 +21,9 @@ Exact sums (``partial``, ``value``, ``totals``): where no serial order is to be 
 over particles spread over ranks is made independent of the split by summing exactly.  Each rank
 adds its values into an exact fixed-point accumulator (ACC_LEN int64: 32-bit chunks covering
 every finite double, and counts of NaN and infinities; the compiled ``parjam_exact_add`` of
-parjam/pack/_kernels.c, or a numpy fallback with the same result), the accumulators are summed
+parjam/pack/_kernels.c -- blocks of 256 values split exactly on two grids below the block's
+largest magnitude, two doubles a block, the rest value by value -- or a numpy fallback with the
+same integers), the accumulators are summed
 as integers (one MPI_SUM allreduce: exact, in any order), and the total is rounded once to the
 nearest double, ties to even: the value math.fsum gives on all the values at once.  The packing
 engine's FIRE sums, Newton's energy and the observables of every state are taken this way, so
