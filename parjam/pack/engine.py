@@ -264,10 +264,12 @@ class SlabEngine:
         bound = dt * (mix_v * (vmax + dt * last.fmax) + mix_f * last.fmax)
         if reset:
             bound += 0.5 * dt * last.vmax
-        self._call(kernels.FIRE_UPDATE, dt, reset, back, mix_v, mix_f)
-        if (last.disp + bound) * (1.0 + 1e-6) >= 0.5 * self.skin:
+        if (last.disp + bound) * (1.0 + 1e-6) < 0.5 * self.skin:  # the list holds: one call
+            self._call(kernels.FIRE_UPDATE | forces, dt, reset, back, mix_v, mix_f)
+        else:
+            self._call(kernels.FIRE_UPDATE, dt, reset, back, mix_v, mix_f)
             self.rebuild()
-        self._call(forces, dt, reset, back, mix_v, mix_f)
+            self._call(forces, dt, reset, back, mix_v, mix_f)
         return self._exchange(energy)
 
     def _call(self, mode, dt, reset, back, mix_v, mix_f, stale2=0.0):
