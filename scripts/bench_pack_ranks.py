@@ -214,8 +214,9 @@ def main():
                          if a["n"] == b["n"] == n and a["tree"] == b["tree"] == tree
                          and a["repeat"] == b["repeat"] and a["ranks"] == 1 and b["ranks"] == 2]
                 row[f"{tree}_speedup"] = median([a / b for a, b in pairs])
-        if "old" in trees:
-            row["new_over_old_1"] = row["new_1"] / row["old_1"]
+        if "old" in trees:  # new against old, per rank count measured
+            for p in args.ranks:
+                row[f"new_over_old_{p}"] = row[f"new_{p}"] / row[f"old_{p}"]
         summary.append(row)
     print(f"\nload average before {load[0][0]:.1f}, after {load[1][0]:.1f} "
           f"(1/5/15 min: {', '.join(f'{x:.1f}' for x in load[1])})")
