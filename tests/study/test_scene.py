@@ -1,6 +1,9 @@
 """Scenes (parjam.study) and ``parjam run`` (parjam.study.runner): the parser's errors, the plan
 computes only what the observables need, a tiny scene end to end against the library, skipping
-finished work and resuming an interrupted run.  Serially and under mpirun -n 2."""
+finished work and resuming an interrupted run.  Serially and under mpirun -n 2.
+
+Over 500 lines on purpose: the parser, plan, end-to-end and resume tests share one tiny scene
+and its fixtures; split, each file would rebuild them."""
 
 import os
 
