@@ -536,7 +536,7 @@ enum { FIRE_UPDATE = 1, FIRE_FORCES = 2, FIRE_ENERGY = 4 };
  * FIRE_FORCES: the forces on the owned particles from the pairs over ``pos`` (the owned block is
  * [lo, hi) of pos; on one rank pos is x itself), then the step's sums over the owned particles
  * into ``acc`` (FIRE_ACC int64): exact accumulators (XACC_LEN each, normalised) of the energy
- * (with FIRE_ENERGY, else left 0: FIRE decides on the others, and the energy's sum costs ~4 %
+ * (with FIRE_ENERGY, else left 0: FIRE decides on the others, and the energy's sum costs 5 - 6 %
  * of a step), F.v, |F|^2 and |v|^2, each summed per particle first (its pairs, its d components, in a fixed
  * order), then the maxima of |F_i|^2 and |v_i|^2 as the bits of the non-negative doubles
  * (ordered as int64).  The last entry, the displacement^2, is left as it is: the update's, or

@@ -150,7 +150,7 @@ def fire(ff, ftol, e_stop=-np.inf, params=None, progress=None, start=None, snaps
         fn = np.sqrt(s.f2)
         mix_v, mix_f = (1.0 - a, a * np.sqrt(vn2) / fn) if fn > 0.0 else (1.0, 0.0)
         ff.n_force_calls += 1
-        # the energy only where a decision or a line needs it (it costs ~4 % of a step)
+        # the energy only where a decision or a line needs it (it costs 5 - 6 % of a step)
         shown = progress is not None and step % 100 == 0
         s = eng.step(dt, reset, mix_v, mix_f, s, energy=stops_on_energy or shown)
         if shown:
