@@ -170,7 +170,8 @@ class SlabEngine:
         low[mine] = np.arange(n_own)
         self.pi, self.pj = kernels.slab_pairs(np.concatenate([xw, halo.x]), self.L, self.cut,
                                               np.concatenate([np.arange(n_own), row]), gid,
-                                              kinds, low, cap, self.scratch)
+                                              kinds, low, cap, self.scratch,
+                                              slab=self.domain.bounds[self.rank:self.rank + 2])
         self._ghost_plan(halo, foreign)
         self._arrays(*(a[foreign] for a in halo.values))
 
@@ -188,8 +189,9 @@ class SlabEngine:
             ends = np.cumsum(counts)
             return [(r, int(e - c), int(e)) for r, (c, e) in enumerate(zip(counts, ends)) if c]
 
-        self.send_slices = slices(np.asarray(halo.send_counts))
-        self.recv_slices = slices(np.asarray(halo.recv_counts))
+        # the buffers' parts, one per rank, as views made once (not sliced every step)
+        self.send_parts = [(r, self.sendbuf[a:b]) for r, a, b in slices(halo.send_counts)]
+        self.recv_parts = [(r, self.recvbuf[a:b]) for r, a, b in slices(halo.recv_counts)]
 
     def _plan_periodic(self, xw, cap):
         """One rank: every ghost is an image of an owned particle, so the fully periodic cell
@@ -202,7 +204,7 @@ class SlabEngine:
         self.pi, self.pj = got
         self.send_index = self.unpack = np.empty(0, dtype=np.int64)
         self.sendbuf = self.recvbuf = np.empty((0, self.d))
-        self.send_slices = self.recv_slices = []
+        self.send_parts = self.recv_parts = []
         self._arrays(np.empty((0, self.d)), np.empty((0, self.d)), np.empty(0))
         return True
 
@@ -222,6 +224,9 @@ class SlabEngine:
         self.pdiam = np.concatenate([self.diam, g_diam])
         self.ref = self.xu.copy()
         self.acc[-1] = 0  # the displacement since the list was built (the update keeps it)
+        # the per-step packing of the ghosts' forces to send, and the unpacking of those received
+        self.pack_forces = kernels.RowGather(self.send_index, self.f, self.sendbuf)
+        self.unpack_forces = kernels.RowGather(self.unpack, self.recvbuf, self.f_all[n_own:])
         self.kernel = kernels.FireKernel(self.pos, self.v_all, self.f_all, self.ref, self.pi,
                                          self.pj, self.pos, self.pdiam, self.acc, nown=n_own)
 
@@ -288,16 +293,14 @@ class SlabEngine:
 
             comm = self.comm
             with event(HALO):
-                np.take(self.f, self.send_index, axis=0, out=self.sendbuf)
-                reqs = [comm.Irecv(self.recvbuf[a:b], source=r, tag=TAG)
-                        for r, a, b in self.recv_slices]
-                reqs += [comm.Isend(self.sendbuf[a:b], dest=r, tag=TAG)
-                         for r, a, b in self.send_slices]
+                self.pack_forces()
+                reqs = [comm.Irecv(buf, source=r, tag=TAG) for r, buf in self.recv_parts]
+                reqs += [comm.Isend(buf, dest=r, tag=TAG) for r, buf in self.send_parts]
             with event(ALLREDUCE):
                 comm.Allreduce(MPI.IN_PLACE, self.acc, op=sum_max_op())
             with event(HALO):
                 MPI.Request.Waitall(reqs)
-                np.take(self.recvbuf, self.unpack, axis=0, out=self.f_all[self.n_own:])
+                self.unpack_forces()
         return FireSums(self.kernel.sums(self.sums), energy)
 
     # --- hand-over to row blocks (lazy gathers) ------------------------------------------------

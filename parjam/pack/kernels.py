@@ -273,6 +273,39 @@ def fire_sums(acc, out=None):
     return out
 
 
+class RowGather:
+    """``dst[k] = src[idx[k]]`` for rows of (n, d) float64 arrays, bound to its arrays once (as
+    FireKernel: a call passes no array through ctypes' checks); np.take where there is no
+    library.  The engine packs the ghosts' forces and unpacks them with two of these every
+    step."""
+
+    def __init__(self, idx, src, dst):
+        self.arrays = (idx, src, dst)
+        if (idx.dtype != np.int64 or src.dtype != np.float64 or dst.dtype != np.float64
+                or not all(a.flags.c_contiguous for a in self.arrays)
+                or len(dst) != len(idx) or src.shape[1:] != dst.shape[1:]):
+            raise ValueError("RowGather needs C-contiguous int64 idx and float64 (n, d) rows")
+        if len(idx) and (idx.min() < 0 or idx.max() >= len(src)):
+            raise ValueError("RowGather: an index outside the source rows")
+        lib = library()
+        self.fn = None
+        if lib is not None:
+            fn = lib["parjam_gather_rows"]
+            vp = ctypes.c_void_p
+            fn.restype = None
+            fn.argtypes = [ctypes.c_int64, ctypes.c_int, vp, vp, vp]
+            self.fn = fn
+            self.args = (len(idx), dst.shape[1] if dst.ndim > 1 else 1,
+                         *(a.ctypes.data for a in self.arrays))
+
+    def __call__(self):
+        if self.fn is None:
+            idx, src, dst = self.arrays
+            np.take(src, idx, axis=0, out=dst)
+        else:
+            self.fn(*self.args)
+
+
 class FireKernel:
     """``fire_step`` bound to its arrays (x, v, f: (n_all, d), the first ``nown`` rows owned;
     ref: (nown, d); pi, pj; pos; diam; acc): their addresses are taken once, so a call passes
@@ -396,15 +429,19 @@ def cell_pair_lists(pos, L, cutoff, lo, hi, cap=None, scratch=None):
     return pi, pj
 
 
-def slab_pairs(pos, L, cutoff, row, gid, kind, low, cap=None, scratch=None):
+def slab_pairs(pos, L, cutoff, row, gid, kind, low, cap=None, scratch=None, slab=None):
     """The pairs of one slab's search points (parjam.pack.engine): ``pos`` (n, d) open along axis 0,
     folded into [0, L) along the others; ``kind`` 0 for owned particles, 1 for images of owned
     ones across the periodic boundary, 2 for other ranks' ghosts; ``low`` the points of kinds 0
     and 2 in global-id order.  Returns (pi, pj), rows ``row[.]`` of the pairs closer than
     ``cutoff`` with an owned end, each physical pair once, in global (i, j) order (see
     ``parjam_slab_pairs``).  ``cap``: the expected number of pairs (e.g. the last list's, with
-    a margin; more are found by a second pass); ``scratch``: a Scratch for the work arrays.
-    Compiled cells; the numpy fallback uses a k-d tree."""
+    a margin; more are found by a second pass); ``scratch``: a Scratch for the work arrays;
+    ``slab``: the slab's (lower, upper) bounds along axis 0, to which the layers of cells are
+    then aligned, the halo on each side in a layer of its own (its ghosts' pairs among
+    themselves are not searched: 8 - 13 % of a search at N = 65,536 - 16,384 on 2 ranks).
+    The pairs and their order do not depend on the cells.  Compiled cells; the numpy fallback
+    uses a k-d tree."""
     pos = np.ascontiguousarray(pos, dtype=np.float64)
     n, d = pos.shape
     row, gid, kind, low = (np.ascontiguousarray(a, dtype=np.int64) for a in (row, gid, kind, low))
@@ -420,10 +457,16 @@ def slab_pairs(pos, L, cutoff, row, gid, kind, low, cap=None, scratch=None):
             break
         w *= 1.25
     w0 = span / nx * (1.0 + 1e-12) if span > 0 else 1.0
+    if slab is not None and slab[1] - slab[0] >= w:
+        # layers of edge >= w: k across the slab, one below and one above it for the halo
+        k = int((slab[1] - slab[0]) // w)
+        a0 = (slab[1] - slab[0]) / k * (1.0 + 1e-12)
+        if x0min >= slab[0] - a0 and x0min + span < slab[0] + (k + 1) * a0:
+            x0min, w0, nx = slab[0] - a0, a0, k + 2
     lib = library()
     if lib is None:
         _fallback()
-        return _slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low)
+        return slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low)
     work = Scratch() if scratch is None else scratch
     start = work.get("start", nx * nc ** (d - 1) + 1)
     order, cellof = work.get("order", n), work.get("cellof", n)
@@ -445,7 +488,7 @@ def slab_pairs(pos, L, cutoff, row, gid, kind, low, cap=None, scratch=None):
 
 
 
-def _slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low):
+def slab_pairs_numpy(pos, L, cutoff, row, gid, kind, low):
     """slab_pairs by a k-d tree (the same pairs in the same order)."""
     from scipy.spatial import cKDTree
 

@@ -55,3 +55,31 @@ def test_a_scratch_reused_by_searches_of_other_sizes_changes_nothing():
         fresh = kernels.cell_pair_lists(pos, pack.L, cut, 0, n)
         assert np.array_equal(np.stack(reused, axis=1), np.stack(fresh, axis=1)), (d, n)
         assert np.array_equal(np.stack(reused, axis=1), neighbour_pairs(pos, pack.L, cut))
+
+
+@pytest.mark.parametrize("d, width", [(3, 5.0), (3, 1.3), (2, 7.7), (3, 0.9)])
+def test_slab_search_with_layers_aligned_to_the_slab(d, width):
+    """kernels.slab_pairs given the slab's bounds (its layers of cells aligned to them, the
+    halo's ghosts among themselves not searched) lists the same pairs in the same order as
+    without them and as the k-d tree fallback: a slab of owned points (kind 0), ghosts of other
+    ranks within the cutoff on both sides (kind 2); slabs several cells wide, one cell wide,
+    and narrower than a cell (the unaligned grid then)."""
+    if kernels.library() is None:
+        pytest.fail("the compiled kernels are not available (a C compiler is part of the setup)")
+    rng = np.random.default_rng(int(10 * width) + d)
+    L, cut, lo = 6.0, 1.25, 1.5
+    n = int(40 * width * L ** (d - 1) / 6.0 ** (d - 1)) + 40
+    x = rng.uniform(0, L, (n, d))
+    x[:, 0] = lo + rng.uniform(-cut, width + cut, n) * (1 - 1e-12)
+    inside = (x[:, 0] >= lo) & (x[:, 0] < lo + width)
+    kind = np.where(inside, 0, 2)
+    gid = rng.permutation(5 * n)[:n].astype(np.int64)
+    row = np.arange(n, dtype=np.int64)
+    low = np.argsort(gid, kind="stable")
+    plain = kernels.slab_pairs(x, L, cut, row, gid, kind, low)
+    aligned = kernels.slab_pairs(x, L, cut, row, gid, kind, low, slab=(lo, lo + width))
+    tree = kernels.slab_pairs_numpy(x, L, cut, row, gid, kind, low)
+    assert len(plain[0]) > n // 2
+    for a, b, c in zip(plain, aligned, tree):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
