@@ -20,6 +20,13 @@ def test_events_count_kernel_calls_rebuilds_halo_and_newton(world):
     pack = random_packing(3, 200, 0.70, 2.0, "bi", 1.4, np.random.default_rng(5))
     ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
     ff.set_positions(pack.pos)
+    ff_checks, stop = [0], ff.stop_engine
+
+    def stop_counting():  # the engine's count of displacement reductions, before it goes
+        ff_checks[0] += ff.engine.n_checks
+        stop()
+
+    ff.stop_engine = stop_counting
     before = _counts()
     res = fire(ff, 0.0, params=FireParams(max_steps=300))
     mid = _counts()
@@ -30,16 +37,24 @@ def test_events_count_kernel_calls_rebuilds_halo_and_newton(world):
     several = world.getSize() > 1
     steps = res.fire_steps
     assert steps == 300
-    # one kernel call per step (two when a rebuild comes between the update and the forces),
-    # plus the start and the end's (the energy, which the steps did not sum)
-    assert steps + 2 <= fired[logevents.FORCE]
-    assert fired[logevents.FORCE] <= steps + 2 + fired[logevents.REBUILD]
+    checks = ff_checks[0]
     assert 0 < fired[logevents.REBUILD] < steps
+    # one kernel call per step, plus the start and the end's (the energy, which the steps did
+    # not sum); two in a step where one rank rebuilt the list between the update and the
+    # forces, and where several ranks reduced the largest displacement between them (at every
+    # rebuild after the first, and where a bound could not tell that the list holds)
+    if several:
+        assert checks >= fired[logevents.REBUILD] - 1
+        assert fired[logevents.FORCE] == steps + 2 + checks
+    else:
+        assert checks == 0
+        assert steps + 2 <= fired[logevents.FORCE] <= steps + 2 + fired[logevents.REBUILD]
     # a hand-over of the slabs' particles at every rebuild (one rank has none)
     assert fired[logevents.MIGRATE] == (fired[logevents.REBUILD] if several else 0)
     # one reduction per step, the start's and the end's, with the ghosts' forces sent before
-    # it and received after it (two halo events), and the ghosts pulled at each rebuild
-    assert fired[logevents.ALLREDUCE] == (steps + 2 if several else 0)
+    # it and received after it (two halo events), the checks' own, and the ghosts pulled at
+    # each rebuild
+    assert fired[logevents.ALLREDUCE] == (steps + 2 + checks if several else 0)
     assert fired[logevents.HALO] == (2 * (steps + 2) + fired[logevents.REBUILD] if several
                                      else 0)
     assert fired[logevents.ASSEMBLY] == fired[logevents.FACTOR] == 0
