@@ -610,6 +610,40 @@ int parjam_fire_step(int mode, int64_t nown, int64_t nall, int d, double *x, dou
     return 0;
 }
 
+/* The n rows of d coordinates ``x`` folded into the box, out = max(x - L floor(x invL), 0) with
+ * invL = 1 / L as the caller rounded it (parjam.net.domain.SlabDomain.fold's arithmetic, the same
+ * bits), and, with nb > 0, the owner of each row, the slab k of ``bounds`` (nb + 1 values) with
+ * bounds[k] <= out[row, 0] < bounds[k + 1] (searchsorted(bounds, x, "right") - 1, clipped to
+ * [0, nb - 1]: SlabDomain.owner; of x itself when out is NULL).  One pass, no temporaries (numpy's four passes over
+ * fresh arrays cost 0.3 - 0.4 ms at 8,192 particles in a rebuild). */
+void parjam_fold_owner(int64_t n, int d, const double *x, double L, double invL, int64_t nb,
+                       const double *bounds, double *out, int64_t *owner)
+{
+    for (int64_t k = 0; k < n; k++) {
+        if (out) /* else x is folded already: the owners alone */
+            for (int a = 0; a < d; a++) {
+                const double v = x[k * d + a];
+                const double o = v - L * floor(v * invL);
+                out[k * d + a] = o > 0.0 || o != o ? o : 0.0; /* np.maximum(o, 0.0), -0 to +0 */
+            }
+        if (nb > 0) {
+            const double x0 = out ? out[k * d] : x[k * d];
+            int64_t lo = 0, hi = nb + 1; /* the first bound > x0 (NaN: past all, as numpy) */
+            if (x0 != x0)
+                lo = hi;
+            while (lo < hi) {
+                const int64_t mid = (lo + hi) / 2;
+                if (bounds[mid] <= x0)
+                    lo = mid + 1;
+                else
+                    hi = mid;
+            }
+            const int64_t r = lo - 1;
+            owner[k] = r < 0 ? 0 : r > nb - 1 ? nb - 1 : r;
+        }
+    }
+}
+
 /* dst[k] = src[idx[k]] for the n rows of d doubles (the engine's per-step packing of the ghosts'
  * forces and their unpacking: np.take costs ~20 us for 1,700 rows, this ~2). */
 void parjam_gather_rows(int64_t n, int d, const int64_t *idx, const double *src, double *dst)

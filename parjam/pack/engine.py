@@ -98,17 +98,19 @@ class SlabEngine:
         """Migration (to new bounds if the counts would drift or ``rebalance``), the ghost plan
         and the pair list at the current positions (collective)."""
         with event(REBUILD):
-            xw = self.domain.fold(self.xu)
+            # folded positions (and owners), as self.domain.fold and .owner give them
+            xw, dest = kernels.fold_owner(self.xu, self.L,
+                                          self.domain.bounds if self.size > 1 else None)
             if self.size > 1:
                 with event(MIGRATE):
-                    dest = self.domain.owner(xw, folded=True)
                     # the rows each rank would own, and how many leave their slab in all
                     counts = np.bincount(dest, minlength=self.size + 1).astype(np.int64)
                     counts[-1] = np.count_nonzero(dest != self.rank)
                     self.comm.Allreduce(_mpi_in_place(), counts, op=_mpi_sum())
                     if rebalance or counts[:-1].max() > REBALANCE * counts[:-1].mean():
                         self.domain = SlabDomain.balanced(self.comm, self.L, self.xu)
-                        dest = self.domain.owner(xw, folded=True)
+                        dest = kernels.fold_owner(xw, self.L, self.domain.bounds,
+                                                  folded=True)[1]
                         counts[-1] = 1  # every rank hands over
                     if counts[-1]:  # else nothing moves: no exchange
                         xw = self._migrate(xw, dest)
@@ -140,7 +142,7 @@ class SlabEngine:
 
         self._own(merged(self.xu, got["x"]), merged(self.ids, ids_in),
                   merged(self.diam, got["diam"]), merged(self.v, got["v"]))
-        return merged(xw, self.domain.fold(got["x"]))
+        return merged(xw, kernels.fold_owner(got["x"], self.L)[0])
 
     def _plan(self, xw):
         """Ghosts, the force arrays and the pair list for the owned rows, whose wrapped

@@ -139,6 +139,10 @@ def library():
     xv = lib.parjam_exact_value
     xv.restype = ctypes.c_double
     xv.argtypes = [i64]
+    fo = lib.parjam_fold_owner
+    fo.restype = None
+    fo.argtypes = [ctypes.c_int64, ctypes.c_int, ctypes.c_void_p, dbl, dbl, ctypes.c_int64,
+                   ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
     fs = lib.parjam_fire_sums
     fs.restype = None
     fs.argtypes = [i64, w64]
@@ -271,6 +275,35 @@ def fire_sums(acc, out=None):
     out[:4] = [exactsum.value(acc[k * n:(k + 1) * n]) for k in range(4)]
     out[4:] = acc[FIRE_ACC - 3:].view(np.float64)
     return out
+
+
+def fold_owner(x, L, bounds=None, folded=False):
+    """Positions ``x`` (n, d) folded into the box [0, L) as parjam.net.domain.SlabDomain.fold
+    folds them (the same bits; not if ``folded``: x is, already), and, given the slab
+    ``bounds`` (P + 1 values along axis 0), the owning slab of each row as
+    SlabDomain.owner(folded=True) gives it; in one compiled pass.  Returns (folded positions,
+    owners or None)."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    n = len(x)
+    d = x.shape[1] if x.ndim > 1 else 1
+    out = x if folded else np.empty_like(x)
+    nb = 0 if bounds is None else len(bounds) - 1
+    owner = None
+    if nb:
+        bounds = np.ascontiguousarray(bounds, dtype=np.float64)
+        owner = np.empty(n, dtype=np.int64)
+    lib = library()
+    if lib is None:
+        if not folded:
+            out[...] = np.maximum(x - L * np.floor(x * (1.0 / L)), 0.0)
+        if nb:
+            owner[...] = np.clip(np.searchsorted(bounds, out[:, 0], side="right") - 1, 0, nb - 1)
+        return out, owner
+    lib.parjam_fold_owner(n, d, x.ctypes.data, float(L), 1.0 / float(L), nb,
+                          bounds.ctypes.data if nb else None,
+                          None if folded else out.ctypes.data,
+                          owner.ctypes.data if nb else None)
+    return out, owner
 
 
 class RowGather:

@@ -14,6 +14,7 @@ from parjam.pack.engine import SlabEngine
 from parjam.pack.fire import FireParams, fire
 from parjam.pack.forces import ForceField
 from parjam.pack.packing import random_packing
+from parjam.net.domain import SlabDomain
 from parjam.net.system import neighbour_pairs
 from parjam.testing.gather import gather
 
@@ -199,3 +200,35 @@ def test_the_numpy_slab_search_lists_the_compiled_ones_pairs(monkeypatch):
         for a, b in zip(*lists):
             np.testing.assert_array_equal(a, b)
         assert len(lists[0][0]) > 0
+
+
+@pytest.mark.parametrize("numpy_kernels", [False, True])
+def test_fold_owner_is_the_domains_fold_and_owner(monkeypatch, numpy_kernels):
+    """kernels.fold_owner (one compiled pass) against SlabDomain.fold and .owner, bit for bit:
+    positions far outside the box, multiples of L, a denormal below 0, points on the slab
+    bounds and between them, in 2D and 3D, 1 to 4 slabs; and the owners of positions folded
+    already (a position a hair below 0 folds to L: its owner is the last slab, not refolded)."""
+    if numpy_kernels:
+        monkeypatch.setenv("PARJAM_KERNELS", "numpy")
+    kernels.reset()
+    try:
+        rng = np.random.default_rng(8)
+        for d, L, P in ((3, 7.3, 1), (2, 5.0, 3), (3, 11.0, 4)):
+            bounds = np.concatenate(([0.0], np.sort(rng.uniform(0, L, P - 1)), [L]))
+            x = rng.uniform(-3 * L, 4 * L, (400, d))
+            x[:20] = L * rng.integers(-3, 4, (20, d))  # multiples of L
+            x[20, 0], x[21, 0] = -5e-324, -1e-17  # below 0 by a denormal, and by a hair
+            x[22:22 + P + 1, 0] = bounds  # on the bounds
+            want = SlabDomain(MPI.COMM_SELF, L, [0.0, L]).fold(x)
+            # SlabDomain.owner(folded=True) on P slabs (a domain of P ranks needs P ranks)
+            want_owner = np.clip(np.searchsorted(bounds, want[:, 0], side="right") - 1, 0, P - 1)
+            got, owner = kernels.fold_owner(x, L, bounds)
+            assert np.array_equal(got.view(np.int64), want.view(np.int64))
+            assert 0.0 <= got.min() and got.max() <= L
+            np.testing.assert_array_equal(owner, want_owner)
+            again = kernels.fold_owner(want, L, bounds, folded=True)[1]
+            np.testing.assert_array_equal(again, want_owner)
+            assert kernels.fold_owner(x, L)[1] is None
+    finally:
+        monkeypatch.delenv("PARJAM_KERNELS", raising=False)
+        kernels.reset()
