@@ -644,6 +644,22 @@ void parjam_fold_owner(int64_t n, int d, const double *x, double L, double invL,
     }
 }
 
+/* Rows of w 8-byte values (doubles or int64) of two sources, merged: row k of dst is row rows[k] of
+ * ``old`` when rows[k] < nold, else row rows[k] - nold of ``fresh`` (the rows a rank keeps and
+ * those handed to it, merged by id after a migration: one pass, where a concatenation and a
+ * take make two and a temporary). */
+void parjam_merge_rows(int64_t n, int w, const int64_t *rows, int64_t nold, const void *old,
+                       const void *fresh, void *dst)
+{
+    const size_t row = (size_t)w * 8;
+    for (int64_t k = 0; k < n; k++) {
+        const int64_t r = rows[k];
+        const char *from = r < nold ? (const char *)old + (size_t)r * row
+                                    : (const char *)fresh + (size_t)(r - nold) * row;
+        memcpy((char *)dst + (size_t)k * row, from, row);
+    }
+}
+
 /* dst[k] = src[idx[k]] for the n rows of d doubles (the engine's per-step packing of the ghosts'
  * forces and their unpacking: np.take costs ~20 us for 1,700 rows, this ~2). */
 void parjam_gather_rows(int64_t n, int d, const int64_t *idx, const double *src, double *dst)

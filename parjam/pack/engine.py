@@ -138,7 +138,7 @@ class SlabEngine:
         rows[mine] = keep
 
         def merged(values, arrived):  # this rank's remaining rows and the arrivals, by id
-            return np.concatenate([values, arrived]).take(rows, axis=0)  # take: 3x [rows]
+            return kernels.merge_rows(rows, values, arrived)
 
         self._own(merged(self.xu, got["x"]), merged(self.ids, ids_in),
                   merged(self.diam, got["diam"]), merged(self.v, got["v"]))

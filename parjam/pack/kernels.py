@@ -139,6 +139,10 @@ def library():
     xv = lib.parjam_exact_value
     xv.restype = ctypes.c_double
     xv.argtypes = [i64]
+    mr = lib.parjam_merge_rows
+    mr.restype = None
+    mr.argtypes = [ctypes.c_int64, ctypes.c_int, ctypes.c_void_p, ctypes.c_int64,
+                   ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
     fo = lib.parjam_fold_owner
     fo.restype = None
     fo.argtypes = [ctypes.c_int64, ctypes.c_int, ctypes.c_void_p, dbl, dbl, ctypes.c_int64,
@@ -304,6 +308,22 @@ def fold_owner(x, L, bounds=None, folded=False):
                           None if folded else out.ctypes.data,
                           owner.ctypes.data if nb else None)
     return out, owner
+
+
+def merge_rows(rows, old, fresh):
+    """``np.concatenate([old, fresh]).take(rows, axis=0)`` in one compiled pass (rows of float64
+    or int64, any trailing shape; the same bits)."""
+    old, fresh = np.ascontiguousarray(old), np.ascontiguousarray(fresh, dtype=old.dtype)
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    lib = library()
+    if (lib is None or old.dtype.itemsize != 8 or old.shape[1:] != fresh.shape[1:]
+            or (len(rows) and (rows.min() < 0 or rows.max() >= len(old) + len(fresh)))):
+        return np.concatenate([old, fresh]).take(rows, axis=0)
+    out = np.empty((len(rows),) + old.shape[1:], dtype=old.dtype)
+    w = int(np.prod(old.shape[1:], dtype=np.int64))
+    lib.parjam_merge_rows(len(rows), w, rows.ctypes.data, len(old), old.ctypes.data,
+                          fresh.ctypes.data, out.ctypes.data)
+    return out
 
 
 class RowGather:

@@ -232,3 +232,21 @@ def test_fold_owner_is_the_domains_fold_and_owner(monkeypatch, numpy_kernels):
     finally:
         monkeypatch.delenv("PARJAM_KERNELS", raising=False)
         kernels.reset()
+
+
+def test_merge_rows_is_a_concatenation_taken():
+    """kernels.merge_rows (one compiled pass, as a migration merges the rows a rank keeps with
+    those handed to it) against numpy's concatenate + take, bit for bit, for positions (n, 3),
+    ids (int64) and diameters; with no arrivals, and with no row kept."""
+    rng = np.random.default_rng(2)
+    for n_old, n_new in ((50, 7), (40, 0), (0, 9)):
+        for shape, dtype in (((3,), np.float64), ((), np.int64), ((), np.float64)):
+            old = rng.normal(size=(n_old,) + shape).astype(dtype)
+            fresh = rng.normal(size=(n_new,) + shape).astype(dtype)
+            if dtype == np.int64:
+                old, fresh = rng.integers(-2**62, 2**62, n_old), rng.integers(0, 99, n_new)
+            rows = rng.permutation(n_old + n_new)[:max(1, (n_old + n_new) * 3 // 4)]
+            want = np.concatenate([old, fresh]).take(rows, axis=0)
+            got = kernels.merge_rows(rows, old, fresh)
+            assert got.dtype == want.dtype and got.shape == want.shape
+            assert np.array_equal(got.view(np.int64), want.view(np.int64))
