@@ -610,6 +610,18 @@ int parjam_fire_step(int mode, int64_t nown, int64_t nall, int d, double *x, dou
     return 0;
 }
 
+/* floor(v), the same value as libm's (signed zeros included), inlined: below 2^52 in magnitude
+ * the truncation by conversion, less one where it rounded up; above, v is an integer (or NaN or
+ * infinite) already. */
+static ALWAYS_INLINE double floor_exact(double v)
+{
+    if (!(fabs(v) < 0x1p52))
+        return v;
+    double t = (double)(int64_t)v;
+    t -= t > v ? 1.0 : 0.0;
+    return t == 0.0 ? copysign(0.0, v) : t;
+}
+
 /* The n rows of d coordinates ``x`` folded into the box, out = max(x - L floor(x invL), 0) with
  * invL = 1 / L as the caller rounded it (parjam.net.domain.SlabDomain.fold's arithmetic, the same
  * bits), and, with nb > 0, the owner of each row, the slab k of ``bounds`` (nb + 1 values) with
@@ -623,7 +635,7 @@ void parjam_fold_owner(int64_t n, int d, const double *x, double L, double invL,
         if (out) /* else x is folded already: the owners alone */
             for (int a = 0; a < d; a++) {
                 const double v = x[k * d + a];
-                const double o = v - L * floor(v * invL);
+                const double o = v - L * floor_exact(v * invL);
                 out[k * d + a] = o > 0.0 || o != o ? o : 0.0; /* np.maximum(o, 0.0), -0 to +0 */
             }
         if (nb > 0) {
@@ -631,6 +643,11 @@ void parjam_fold_owner(int64_t n, int d, const double *x, double L, double invL,
             int64_t lo = 0, hi = nb + 1; /* the first bound > x0 (NaN: past all, as numpy) */
             if (x0 != x0)
                 lo = hi;
+            else if (nb <= 16) { /* few slabs: count the bounds <= x0, without a branch */
+                for (int64_t b = 0; b <= nb; b++)
+                    lo += bounds[b] <= x0;
+                hi = lo;
+            }
             while (lo < hi) {
                 const int64_t mid = (lo + hi) / 2;
                 if (bounds[mid] <= x0)
@@ -648,24 +665,48 @@ void parjam_fold_owner(int64_t n, int d, const double *x, double L, double invL,
  * ``old`` when rows[k] < nold, else row rows[k] - nold of ``fresh`` (the rows a rank keeps and
  * those handed to it, merged by id after a migration: one pass, where a concatenation and a
  * take make two and a temporary). */
+static ALWAYS_INLINE void merge_w(const int w, int64_t n, const int64_t *rows, int64_t nold,
+                                   const int64_t *old, const int64_t *fresh, int64_t *dst)
+{
+    for (int64_t k = 0; k < n; k++) {
+        const int64_t r = rows[k];
+        const int64_t *from = r < nold ? old + r * w : fresh + (r - nold) * w;
+        for (int a = 0; a < w; a++) /* a constant w: no call to memcpy per row */
+            dst[k * w + a] = from[a];
+    }
+}
+
 void parjam_merge_rows(int64_t n, int w, const int64_t *rows, int64_t nold, const void *old,
                        const void *fresh, void *dst)
 {
-    const size_t row = (size_t)w * 8;
-    for (int64_t k = 0; k < n; k++) {
-        const int64_t r = rows[k];
-        const char *from = r < nold ? (const char *)old + (size_t)r * row
-                                    : (const char *)fresh + (size_t)(r - nold) * row;
-        memcpy((char *)dst + (size_t)k * row, from, row);
+    const int64_t *o = old, *f = fresh;
+    int64_t *t = dst;
+    switch (w) {
+    case 1: merge_w(1, n, rows, nold, o, f, t); break;
+    case 2: merge_w(2, n, rows, nold, o, f, t); break;
+    case 3: merge_w(3, n, rows, nold, o, f, t); break;
+    default: merge_w(w, n, rows, nold, o, f, t);
     }
 }
 
 /* dst[k] = src[idx[k]] for the n rows of d doubles (the engine's per-step packing of the ghosts'
  * forces and their unpacking: np.take costs ~20 us for 1,700 rows, this ~2). */
-void parjam_gather_rows(int64_t n, int d, const int64_t *idx, const double *src, double *dst)
+static ALWAYS_INLINE void gather_d(const int d, int64_t n, const int64_t *idx, const double *src,
+                                    double *dst)
 {
     for (int64_t k = 0; k < n; k++)
-        memcpy(dst + k * d, src + idx[k] * d, (size_t)d * sizeof(double));
+        for (int a = 0; a < d; a++)
+            dst[k * d + a] = src[idx[k] * d + a];
+}
+
+void parjam_gather_rows(int64_t n, int d, const int64_t *idx, const double *src, double *dst)
+{
+    if (d == 3)
+        gather_d(3, n, idx, src, dst);
+    else if (d == 2)
+        gather_d(2, n, idx, src, dst);
+    else
+        gather_d(d, n, idx, src, dst);
 }
 
 /* The seven numbers of a (reduced) FIRE_ACC buffer: energy, F.v, |F|^2, |v|^2 (rounded to
