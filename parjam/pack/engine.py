@@ -40,7 +40,7 @@ import contextlib
 
 import numpy as np
 
-from parjam.pack import kernels
+from parjam.pack import kernels, rowops
 from parjam.net.domain import SlabDomain, as_mpi, send_rows
 from parjam.logevents import ALLREDUCE, FORCE, HALO, MIGRATE, REBUILD, event
 
@@ -99,7 +99,7 @@ class SlabEngine:
         and the pair list at the current positions (collective)."""
         with event(REBUILD):
             # folded positions (and owners), as self.domain.fold and .owner give them
-            xw, dest = kernels.fold_owner(self.xu, self.L,
+            xw, dest = rowops.fold_owner(self.xu, self.L,
                                           self.domain.bounds if self.size > 1 else None)
             if self.size > 1:
                 with event(MIGRATE):
@@ -109,7 +109,7 @@ class SlabEngine:
                     self.comm.Allreduce(_mpi_in_place(), counts, op=_mpi_sum())
                     if rebalance or counts[:-1].max() > REBALANCE * counts[:-1].mean():
                         self.domain = SlabDomain.balanced(self.comm, self.L, self.xu)
-                        dest = kernels.fold_owner(xw, self.L, self.domain.bounds,
+                        dest = rowops.fold_owner(xw, self.L, self.domain.bounds,
                                                   folded=True)[1]
                         counts[-1] = 1  # every rank hands over
                     if counts[-1]:  # else nothing moves: no exchange
@@ -138,11 +138,11 @@ class SlabEngine:
         rows[mine] = keep
 
         def merged(values, arrived):  # this rank's remaining rows and the arrivals, by id
-            return kernels.merge_rows(rows, values, arrived)
+            return rowops.merge_rows(rows, values, arrived)
 
         self._own(merged(self.xu, got["x"]), merged(self.ids, ids_in),
                   merged(self.diam, got["diam"]), merged(self.v, got["v"]))
-        return merged(xw, kernels.fold_owner(got["x"], self.L)[0])
+        return merged(xw, rowops.fold_owner(got["x"], self.L)[0])
 
     def _plan(self, xw):
         """Ghosts, the force arrays and the pair list for the owned rows, whose wrapped
@@ -229,8 +229,8 @@ class SlabEngine:
         self.ref = self.xu.copy()
         self.acc[-1] = 0  # the displacement since the list was built (the update keeps it)
         # the per-step packing of the ghosts' forces to send, and the unpacking of those received
-        self.pack_forces = kernels.RowGather(self.send_index, self.f, self.sendbuf)
-        self.unpack_forces = kernels.RowGather(self.unpack, self.recvbuf, self.f_all[n_own:])
+        self.pack_forces = rowops.RowGather(self.send_index, self.f, self.sendbuf)
+        self.unpack_forces = rowops.RowGather(self.unpack, self.recvbuf, self.f_all[n_own:])
         self.kernel = kernels.FireKernel(self.pos, self.v_all, self.f_all, self.ref, self.pi,
                                          self.pj, self.pos, self.pdiam, self.acc, nown=n_own)
 

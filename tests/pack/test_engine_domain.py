@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from parjam.pack import kernels
+from parjam.pack import kernels, rowops
 from parjam.pack.engine import SlabEngine
 from parjam.pack.fire import FireParams, fire
 from parjam.pack.forces import ForceField
@@ -204,7 +204,7 @@ def test_the_numpy_slab_search_lists_the_compiled_ones_pairs(monkeypatch):
 
 @pytest.mark.parametrize("numpy_kernels", [False, True])
 def test_fold_owner_is_the_domains_fold_and_owner(monkeypatch, numpy_kernels):
-    """kernels.fold_owner (one compiled pass) against SlabDomain.fold and .owner, bit for bit:
+    """rowops.fold_owner (one compiled pass) against SlabDomain.fold and .owner, bit for bit:
     positions far outside the box, multiples of L, a denormal below 0, points on the slab
     bounds and between them, in 2D and 3D, 1 to 4 slabs; and the owners of positions folded
     already (a position a hair below 0 folds to L: its owner is the last slab, not refolded)."""
@@ -222,20 +222,20 @@ def test_fold_owner_is_the_domains_fold_and_owner(monkeypatch, numpy_kernels):
             want = SlabDomain(MPI.COMM_SELF, L, [0.0, L]).fold(x)
             # SlabDomain.owner(folded=True) on P slabs (a domain of P ranks needs P ranks)
             want_owner = np.clip(np.searchsorted(bounds, want[:, 0], side="right") - 1, 0, P - 1)
-            got, owner = kernels.fold_owner(x, L, bounds)
+            got, owner = rowops.fold_owner(x, L, bounds)
             assert np.array_equal(got.view(np.int64), want.view(np.int64))
             assert 0.0 <= got.min() and got.max() <= L
             np.testing.assert_array_equal(owner, want_owner)
-            again = kernels.fold_owner(want, L, bounds, folded=True)[1]
+            again = rowops.fold_owner(want, L, bounds, folded=True)[1]
             np.testing.assert_array_equal(again, want_owner)
-            assert kernels.fold_owner(x, L)[1] is None
+            assert rowops.fold_owner(x, L)[1] is None
     finally:
         monkeypatch.delenv("PARJAM_KERNELS", raising=False)
         kernels.reset()
 
 
 def test_merge_rows_is_a_concatenation_taken():
-    """kernels.merge_rows (one compiled pass, as a migration merges the rows a rank keeps with
+    """rowops.merge_rows (one compiled pass, as a migration merges the rows a rank keeps with
     those handed to it) against numpy's concatenate + take, bit for bit, for positions (n, 3),
     ids (int64) and diameters; with no arrivals, and with no row kept."""
     rng = np.random.default_rng(2)
@@ -247,6 +247,6 @@ def test_merge_rows_is_a_concatenation_taken():
                 old, fresh = rng.integers(-2**62, 2**62, n_old), rng.integers(0, 99, n_new)
             rows = rng.permutation(n_old + n_new)[:max(1, (n_old + n_new) * 3 // 4)]
             want = np.concatenate([old, fresh]).take(rows, axis=0)
-            got = kernels.merge_rows(rows, old, fresh)
+            got = rowops.merge_rows(rows, old, fresh)
             assert got.dtype == want.dtype and got.shape == want.shape
             assert np.array_equal(got.view(np.int64), want.view(np.int64))
