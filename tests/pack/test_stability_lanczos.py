@@ -229,7 +229,10 @@ def test_hessian_without_two_contacts():
         A.destroy()
     assert lam[0] < -1e-9 and lam[1] > 0.0
     assert res.verdict == lowest.BELOW and res.n_below == 1
-    assert lam[0] - 0.01 * s <= res.lowest <= -2.0 * s
+    # a Ritz value is not below the lowest eigenvalue but for round-off, which is a few
+    # eps ||D|| (0.01 s = 1 eps ||D||; here 1.3 eps ||D|| was seen, with OpenBLAS's generic
+    # kernels): 10 eps ||D||, still 10^5 below |lam[0]|
+    assert lam[0] - 0.1 * s <= res.lowest <= -2.0 * s
 
 
 def test_inconclusive_falls_back_to_the_exact_inertia_or_is_undecided():
