@@ -709,6 +709,38 @@ void parjam_gather_rows(int64_t n, int d, const int64_t *idx, const double *src,
         gather_d(d, n, idx, src, dst);
 }
 
+/* A slab search's points at the current positions (the engine's search-only rebuild):
+ * out[k] = pos[src[k]] + offset[k], then folded into [0, L) along axes 1 .. d - 1 as
+ * parjam_fold_owner folds (axis 0 stays open: the plan placed each point's image there); and,
+ * in the same call, ref = the first nref rows of pos (the new list's reference positions). */
+static ALWAYS_INLINE void search_d(const int d, int64_t n, const int64_t *src, const double *pos,
+                                   const double *offset, double L, double invL, double *out)
+{
+    for (int64_t k = 0; k < n; k++) {
+        const double *p = pos + src[k] * d;
+        out[k * d] = p[0] + offset[k * d];
+        for (int a = 1; a < d; a++) {
+            const double v = p[a] + offset[k * d + a];
+            const double o = v - L * floor_exact(v * invL);
+            out[k * d + a] = o > 0.0 || o != o ? o : 0.0;
+        }
+    }
+}
+
+void parjam_search_points(int64_t n, int d, const int64_t *src, const double *pos,
+                          const double *offset, double L, double invL, double *out,
+                          int64_t nref, double *ref)
+{
+    if (d == 3)
+        search_d(3, n, src, pos, offset, L, invL, out);
+    else if (d == 2)
+        search_d(2, n, src, pos, offset, L, invL, out);
+    else
+        search_d(d, n, src, pos, offset, L, invL, out);
+    if (ref)
+        memcpy(ref, pos, (size_t)(nref * d) * sizeof(double));
+}
+
 /* The seven numbers of a (reduced) FIRE_ACC buffer: energy, F.v, |F|^2, |v|^2 (rounded to
  * nearest) and max |F_i|^2, max |v_i|^2, max displacement^2. */
 void parjam_fire_sums(const int64_t *acc, double *out)

@@ -48,6 +48,10 @@ from parjam.logevents import ALLREDUCE, FORCE, HALO, MIGRATE, REBUILD, event
 # (a rebuild's hand-over moves the particles anyway; new bounds cost one histogram allreduce)
 REBALANCE = 1.02
 TAG = 7103  # the point-to-point messages of the ghosts' forces
+# the ghost plan reaches HALO_MARGIN skins beyond the lists' cutoff, so that the rebuilds after
+# it, while no particle can have moved half that margin since the plan, search the same owned
+# rows and ghosts again: no hand-over, no halo exchange, no collective (``rebuild``)
+HALO_MARGIN = 2.2
 
 
 class FireSums:
@@ -79,6 +83,13 @@ class SlabEngine:
         dmax = float(np.max(diam)) if len(diam) else 0.0
         self.cut = self.comm.allreduce(dmax, op=_mpi_max()) + self.skin
         self.n_rebuilds = self.n_migrated = 0
+        self.n_plans = 0  # the rebuilds that handed particles over and planned the ghosts anew
+        # the ghosts reach self.cut + self.margin (below half the box, as SlabDomain.halo
+        # wants); self.drift bounds any particle's displacement since the ghost plan
+        self.margin = (max(0.0, min(HALO_MARGIN * self.skin, 0.49 * self.L - self.cut))
+                       if self.size > 1 else 0.0)
+        self.drift = 0.0
+        self.search = None  # what a search-only rebuild needs (``_plan``)
         self.n_checks = 0  # the steps whose list the bound could not keep, decided by _disp2
         self.acc = np.zeros(kernels.FIRE_ACC, dtype=np.int64)  # the step's sums (exact)
         self.sums = np.zeros(kernels.N_SUMS)
@@ -94,9 +105,28 @@ class SlabEngine:
     def _own(self, x, ids, diam, v):
         self.xu, self.ids, self.diam, self.v = x, ids, diam, v
 
-    def rebuild(self, rebalance=False):
+    def rebuild(self, rebalance=False, moved=None):
         """Migration (to new bounds if the counts would drift or ``rebalance``), the ghost plan
-        and the pair list at the current positions (collective)."""
+        and the pair list at the current positions (collective).
+
+        ``moved``: the largest displacement of any particle since the last list (the value every
+        rank reduced alike, so all ranks decide alike).  While the sum of those since the ghost
+        plan stays within half of ``margin`` (HALO_MARGIN skins), no particle can have left the
+        slab it was owned in by more than that, nor can a particle within the cutoff of an owned
+        one be outside the plan's halo (cutoff + margin): the same owned rows and ghosts are
+        searched again at their current positions (``_search``) -- no hand-over, no exchange.
+        The forces do not depend on which rebuild this is: only touching pairs exert forces, each
+        particle's summed in the global (i, j) order."""
+        if moved is not None and self.search is not None:
+            drift = (self.drift + moved) * (1.0 + 1e-12)  # the triangle inequality, rounded up
+            if drift <= 0.5 * self.margin:
+                with event(REBUILD):
+                    self.drift = drift
+                    self._search()
+                    self.n_rebuilds += 1
+                return
+        self.drift = 0.0
+        self.n_plans += 1
         with event(REBUILD):
             # folded positions (and owners), as self.domain.fold and .owner give them
             xw, dest = rowops.fold_owner(self.xu, self.L,
@@ -150,12 +180,13 @@ class SlabEngine:
         n_own = len(self.ids)
         # the last list's arrays go first (a rebuild's peak memory), its length sizes the next
         cap = int(1.25 * len(self.pi)) + 1024 if getattr(self, "pi", None) is not None else None
-        self.kernel = self.pi = self.pj = self.f = self.ref = self.pdiam = None
+        self.kernel = self.pi = self.pj = self.f = self.ref = self.pdiam = self.search = None
         if self.size == 1 and self._plan_periodic(xw, cap):
             return
         # the ghost plan, and the ghosts' positions, velocities and diameters, in one exchange
         with event(HALO) if self.size > 1 else contextlib.nullcontext():  # one rank: a copy
-            halo = self.domain.halo(xw, self.ids, self.cut, [self.xu, self.v, self.diam])
+            halo = self.domain.halo(xw, self.ids, self.cut + self.margin,
+                                    [self.xu, self.v, self.diam])
         src = np.repeat(np.arange(self.size), halo.recv_counts)[halo.order]
         image = src == self.rank  # own particles seen across the periodic boundary
         foreign = np.flatnonzero(~image)
@@ -172,12 +203,34 @@ class SlabEngine:
         mine[at] = False
         low[at] = n_own + foreign
         low[mine] = np.arange(n_own)
-        self.pi, self.pj = kernels.slab_pairs(np.concatenate([xw, halo.x]), self.L, self.cut,
-                                              np.concatenate([np.arange(n_own), row]), gid,
-                                              kinds, low, cap, self.scratch,
-                                              slab=self.domain.bounds[self.rank:self.rank + 2])
+        pts = np.concatenate([xw, halo.x])  # the search's points: owned rows, then the halo
+        src = np.concatenate([np.arange(n_own), row])  # their rows of the kernel's arrays
+        # the layers of cells aligned to the slab widened by what the owned rows may drift
+        # before the next plan and the margin (the ghosts beyond it in layers of their own)
+        slab = self.domain.bounds[self.rank:self.rank + 2] + np.array([-1.5, 1.5]) * self.margin
+        self.pi, self.pj = kernels.slab_pairs(pts, self.L, self.cut, src, gid, kinds, low, cap,
+                                              self.scratch, slab=slab)
         self._ghost_plan(halo, foreign)
-        self._arrays(*(a[foreign] for a in halo.values))
+        self._arrays(*(a[foreign] for a in halo.values), halo.ids[foreign])
+        if self.margin > 0:
+            # a point's search position is its row's (continuous) position plus this offset
+            pts -= self.pos.take(src, axis=0)
+            self.search = (src, pts, gid, kinds, low, slab)
+
+    def _search(self):
+        """A rebuild of the pair list alone: the plan's points (owned rows, ghosts and images,
+        which every rank moves alike) searched at their current positions, open along axis 0 as
+        the plan placed them and folded into [0, L) along the others."""
+        src, offset, gid, kinds, low, slab = self.search
+        cap = int(1.25 * len(self.pi)) + 1024
+        self.kernel = self.pi = self.pj = None
+        pts = rowops.search_points(src, self.pos, offset, self.L, ref=self.ref)  # ref = xu
+        self.pi, self.pj = kernels.slab_pairs(pts, self.L, self.cut, src, gid, kinds, low, cap,
+                                              self.scratch, slab=slab)
+        del pts
+        self.acc[-1] = 0
+        self.kernel = kernels.FireKernel(self.pos, self.v_all, self.f_all, self.ref, self.pi,
+                                         self.pj, self.pos, self.pdiam, self.acc, nown=self.n_own)
 
     def _ghost_plan(self, halo, foreign):
         """The per-step exchange of the ghosts' forces: the owned rows other ranks hold as
@@ -212,7 +265,7 @@ class SlabEngine:
         self._arrays(np.empty((0, self.d)), np.empty((0, self.d)), np.empty(0))
         return True
 
-    def _arrays(self, g_pos, g_v, g_diam):
+    def _arrays(self, g_pos, g_v, g_diam, g_ids=None):
         """The arrays of the owned rows followed by the ghosts of other ranks -- positions,
         velocities, forces (the ghosts' arrive with the next exchange), diameters -- and the
         kernel bound to them."""
@@ -226,6 +279,8 @@ class SlabEngine:
         self.f_all = np.zeros((n_all, d))
         self.f = self.f_all[:n_own]
         self.pdiam = np.concatenate([self.diam, g_diam])
+        # the global id of each row (owned, then other ranks' ghosts): what the lists' rows are
+        self.row_ids = self.ids if g_ids is None else np.concatenate([self.ids, g_ids])
         self.ref = self.xu.copy()
         self.acc[-1] = 0  # the displacement since the list was built (the update keeps it)
         # the per-step packing of the ghosts' forces to send, and the unpacking of those received
@@ -281,8 +336,9 @@ class SlabEngine:
             # (one small reduction) decides as one rank's kernel does, so the lists are rebuilt
             # at the same steps on any number of ranks (the bound alone rebuilt 7 % more often)
             self._call(kernels.FIRE_UPDATE, dt, reset, back, mix_v, mix_f)
-            if self._disp2() >= (0.5 * self.skin) ** 2:
-                self.rebuild()
+            disp2 = self._disp2()
+            if disp2 >= (0.5 * self.skin) ** 2:
+                self.rebuild(moved=float(np.sqrt(disp2)))
             self._call(forces, dt, reset, back, mix_v, mix_f)
         return self._exchange(energy)
 

@@ -147,6 +147,12 @@ def library():
     fo.restype = None
     fo.argtypes = [ctypes.c_int64, ctypes.c_int, ctypes.c_void_p, dbl, dbl, ctypes.c_int64,
                    ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
+    sp = lib.parjam_search_points
+    sp.restype = None
+    sp.argtypes = [ctypes.c_int64, ctypes.c_int] + [ctypes.c_void_p] * 3 + [dbl, dbl,
+                                                                           ctypes.c_void_p,
+                                                                           ctypes.c_int64,
+                                                                           ctypes.c_void_p]
     fs = lib.parjam_fire_sums
     fs.restype = None
     fs.argtypes = [i64, w64]

@@ -39,6 +39,37 @@ def fold_owner(x, L, bounds=None, folded=False):
     return out, owner
 
 
+def search_points(src, pos, offset, L, ref=None):
+    """``pos.take(src, axis=0) + offset`` folded into [0, L) along axes 1 .. d - 1 as
+    ``fold_owner`` folds (axis 0 left open), and, given ``ref`` (nref, d), ref = pos[:nref]
+    copied alongside; in one compiled pass (the same bits as numpy).  The engine's search-only
+    rebuild places its plan's points so."""
+    pos = np.ascontiguousarray(pos, dtype=np.float64)
+    src = np.ascontiguousarray(src, dtype=np.int64)
+    offset = np.ascontiguousarray(offset, dtype=np.float64)
+    n, d = offset.shape
+    if len(src) != n or pos.shape[1:] != (d,) or (n and (src.min() < 0 or src.max() >= len(pos))):
+        raise ValueError("search_points: src, pos and offset do not match")
+    if ref is not None and (ref.dtype != np.float64 or not ref.flags.c_contiguous
+                            or ref.shape[1:] != (d,) or len(ref) > len(pos)):
+        raise ValueError("search_points: ref must be C-contiguous float64 rows of pos's width")
+    out = np.empty((n, d))
+    lib = library()
+    if lib is None:
+        np.take(pos, src, axis=0, out=out)
+        out += offset
+        rest = out[:, 1:]
+        rest[...] = np.maximum(rest - L * np.floor(rest * (1.0 / L)), 0.0)
+        if ref is not None:
+            ref[...] = pos[:len(ref)]
+        return out
+    lib.parjam_search_points(n, d, src.ctypes.data, pos.ctypes.data, offset.ctypes.data,
+                             float(L), 1.0 / float(L), out.ctypes.data,
+                             0 if ref is None else len(ref),
+                             None if ref is None else ref.ctypes.data)
+    return out
+
+
 def merge_rows(rows, old, fresh):
     """``np.concatenate([old, fresh]).take(rows, axis=0)`` in one compiled pass (rows of float64
     or int64, any trailing shape; the same bits)."""

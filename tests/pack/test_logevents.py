@@ -20,10 +20,11 @@ def test_events_count_kernel_calls_rebuilds_halo_and_newton(world):
     pack = random_packing(3, 200, 0.70, 2.0, "bi", 1.4, np.random.default_rng(5))
     ff = ForceField(world, pack.diam, pack.L, 3, 2.0)
     ff.set_positions(pack.pos)
-    ff_checks, stop = [0], ff.stop_engine
+    ff_checks, ff_plans, stop = [0], [0], ff.stop_engine
 
-    def stop_counting():  # the engine's count of displacement reductions, before it goes
+    def stop_counting():  # the engine's counts of displacement reductions and of ghost plans
         ff_checks[0] += ff.engine.n_checks
+        ff_plans[0] += ff.engine.n_plans
         stop()
 
     ff.stop_engine = stop_counting
@@ -37,7 +38,7 @@ def test_events_count_kernel_calls_rebuilds_halo_and_newton(world):
     several = world.getSize() > 1
     steps = res.fire_steps
     assert steps == 300
-    checks = ff_checks[0]
+    checks, plans = ff_checks[0], ff_plans[0]
     assert 0 < fired[logevents.REBUILD] < steps
     # one kernel call per step, plus the start and the end's (the energy, which the steps did
     # not sum); two in a step where one rank rebuilt the list between the update and the
@@ -49,14 +50,18 @@ def test_events_count_kernel_calls_rebuilds_halo_and_newton(world):
     else:
         assert checks == 0
         assert steps + 2 <= fired[logevents.FORCE] <= steps + 2 + fired[logevents.REBUILD]
-    # a hand-over of the slabs' particles at every rebuild (one rank has none)
-    assert fired[logevents.MIGRATE] == (fired[logevents.REBUILD] if several else 0)
+    # a hand-over of the slabs' particles at every rebuild that plans the ghosts anew (one rank
+    # has none); the rebuilds between plans search the same rows again, without one
+    if several:
+        assert 1 <= plans < fired[logevents.REBUILD]
+        assert fired[logevents.MIGRATE] == plans
+    else:
+        assert plans == fired[logevents.REBUILD] and fired[logevents.MIGRATE] == 0
     # one reduction per step, the start's and the end's, with the ghosts' forces sent before
     # it and received after it (two halo events), the checks' own, and the ghosts pulled at
-    # each rebuild
+    # each plan
     assert fired[logevents.ALLREDUCE] == (steps + 2 + checks if several else 0)
-    assert fired[logevents.HALO] == (2 * (steps + 2) + fired[logevents.REBUILD] if several
-                                     else 0)
+    assert fired[logevents.HALO] == (2 * (steps + 2) + plans if several else 0)
     assert fired[logevents.ASSEMBLY] == fired[logevents.FACTOR] == 0
     assert after[logevents.ASSEMBLY] > mid[logevents.ASSEMBLY]
     assert after[logevents.FACTOR] > mid[logevents.FACTOR]
