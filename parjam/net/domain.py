@@ -132,9 +132,11 @@ class SlabDomain:
             raise ValueError("slab bounds must be P + 1 non-decreasing values")
 
     @classmethod
-    def balanced(cls, comm, L, x_local):
+    def balanced(cls, comm, L, x_local, shares=None):
         """Bounds at the particle-count quantiles along axis 0 of the positions the ranks hold
-        (collective; a histogram of HIST_BINS_PER_RANK * P bins is reduced, nothing gathered)."""
+        (collective; a histogram of HIST_BINS_PER_RANK * P bins is reduced, nothing gathered):
+        rank r's slab holds the fraction ``shares[r]`` of the particles (P values summing to 1,
+        the same on every rank; equal shares by default)."""
         comm = as_mpi(comm)
         x_local = np.asarray(x_local, dtype=np.float64)
         if x_local.ndim != 2:
@@ -151,7 +153,10 @@ class SlabDomain:
             comm.Allreduce(hist, total)
             cum = np.concatenate(([0], np.cumsum(total)))
             if cum[-1] > 0:
-                targets = cum[-1] * np.arange(1, size) / size
+                if shares is None:
+                    targets = cum[-1] * np.arange(1, size) / size
+                else:
+                    targets = cum[-1] * np.cumsum(np.asarray(shares, dtype=np.float64))[:-1]
                 b = np.clip(np.searchsorted(cum, targets, side="right") - 1, 0, nbins - 1)
                 frac = (targets - cum[b]) / np.maximum(total[b], 1)
                 bounds[1:-1] = (b + frac) * edges[0] / nbins

@@ -331,3 +331,37 @@ def test_search_points_are_the_plans_points_moved_and_folded(monkeypatch, numpy_
     finally:
         monkeypatch.delenv("PARJAM_KERNELS", raising=False)
         kernels.reset()
+
+
+def test_slab_shares_follow_the_measured_work_and_change_no_bit(monkeypatch):
+    """Load balance by measured work (SlabEngine._weigh): when rank r reports r + 1 busy
+    seconds for its (equal) share of particles, the next ghost plan gives the ranks particles in
+    proportion to their speed, 1 / (r + 1) (to the count histogram's resolution), and the run
+    goes on bitwise as with equal slabs: positions, forces and FIRE's sums."""
+    from parjam.pack import engine as engine_module
+
+    monkeypatch.setattr(engine_module, "BALANCE_EVERY", 0)  # no comparison of real timings
+    pack = random_packing(3, 1200, 0.70, 2.0, "bi", 1.4, np.random.default_rng(7))
+    runs = []
+    for skew in (False, True):
+        eng = engine(pack)
+        s = eng.start()
+        if skew:
+            eng.busy = COMM.rank + 1.0
+            eng._weigh()
+        for _ in range(120):
+            s = eng.step(0.05, False, 0.95, 0.02, s)
+        runs.append((eng, s, gathered(eng, eng.xu), gathered(eng, eng.f)))
+    (even, s0, x0, f0), (skewed, s1, x1, f1) = runs
+    assert np.array_equal(x0, x1) and np.array_equal(f0, f1)
+    assert (s0.power, s0.f2, s0.v2, s0.fmax) == (s1.power, s1.f2, s1.v2, s1.fmax)
+    assert even.shares is None and even.n_balances == 0
+    if COMM.size == 1:  # one rank has nothing to balance
+        assert skewed.shares is None and skewed.n_balances == 0
+        return
+    speed = np.array(COMM.allgather(1.0 / (COMM.rank + 1.0)))
+    want = speed / speed.sum()
+    assert skewed.n_balances == 1 and skewed.n_plans > 1
+    np.testing.assert_allclose(skewed.shares, want, rtol=0.05)
+    got = np.array(COMM.allgather(skewed.n_own)) / pack.n
+    np.testing.assert_allclose(got, want, atol=0.03)
