@@ -3,13 +3,17 @@ packing held as numpy arrays of each rank's own particles (a slab) and a halo of
 no rank holds or loops over all N particles.
 
 Each rank owns the particles of its slab (positions, velocities, diameters, global ids, sorted
-by id).  A neighbour rebuild hands the particles that left a slab, and only those, to their new
+by id).  A ghost plan hands the particles that left a slab, and only those, to their new
 owner (one exchange, none when no particle left any slab; the slab bounds move to the count
-quantiles again, before the hand-over, when the counts would drift by more than REBALANCE),
-plans the ghosts within cutoff = max diameter + skin of the slab (``SlabDomain.halo``: their
-positions, velocities and diameters pulled in one exchange) and lists the pairs of owned
-particles and ghosts in compiled code (``kernels.slab_pairs``; on one rank, where all ghosts
-are periodic images, the fully periodic cell search ``kernels.cell_pair_lists``, with no halo).
+quantiles of the ranks' shares again, before the hand-over, when the counts would drift by more
+than REBALANCE or the measured work asks for other shares: BALANCE_EVERY), plans the ghosts
+within cutoff + margin of the slab (cutoff = max diameter + skin, margin = HALO_MARGIN skins;
+``SlabDomain.halo``: their positions, velocities and diameters pulled in one exchange) and lists
+the pairs of owned particles and ghosts in compiled code (``kernels.slab_pairs``; on one rank,
+where all ghosts are periodic images, the fully periodic cell search ``kernels.cell_pair_lists``,
+with no halo).  The neighbour rebuilds after a plan, while the displacements since it (summed
+over the lists, a bound every rank computes alike) stay within half the margin, search the same
+owned rows and ghosts again at their current positions, with no exchange at all (``rebuild``).
 Both searches visit each pair of neighbouring cells once (a half stencil) and sort the pairs
 into the global (i, j) order afterwards.
 
@@ -19,8 +23,9 @@ AND the ghosts (each rank holds its ghosts' positions, velocities and forces, an
 with the same arithmetic as their owners: the same bits), the compiled forces and partial sums
 of the owned particles follow at once -- no halo wait -- and then the forces of the particles
 that are other ranks' ghosts are sent to them (non-blocking, point to point) while the step's
-sums are reduced (one allreduce); the ghosts' forces are in place when it returns.  So the halo
-traffic is hidden behind the one reduction the step needs anyway.
+sums are reduced (MPI's own integer sum, then maximum, back to back); the ghosts' forces are in
+place when they return.  So the halo traffic is hidden behind the reduction the step needs
+anyway.
 
 Ghost pairs are computed on both sides: a pair of particles on two ranks is listed by both, and
 each adds the force to its own particle only (no second exchange to push ghost forces back).
