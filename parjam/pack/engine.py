@@ -356,7 +356,7 @@ class SlabEngine:
             return self._exchange(energy)
         self.n_steps += 1
         if BALANCE_EVERY and self.n_steps % BALANCE_EVERY == 0:
-            self._weigh()
+            self.weigh()
         vmax = 0.0 if reset else last.vmax
         bound = dt * (mix_v * (vmax + dt * last.fmax) + mix_f * last.fmax)
         if reset:
@@ -393,7 +393,7 @@ class SlabEngine:
             self.busy += time.perf_counter() - t
             return got
 
-    def _weigh(self):
+    def weigh(self):
         """Compare the ranks' work since the last comparison (collective: an allgather of each
         rank's busy seconds and particles); when the busiest rank took over BALANCE_TOL times
         the mean, the shares become proportional to each rank's particles per busy second

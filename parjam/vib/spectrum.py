@@ -496,7 +496,10 @@ def slepc_modes(comm, S, system, *, kind, method, tol, k=None, window=None, targ
         deflation = translations.vectors(S, system.d)
         eps = sinvert_eps(S, k, target, abstol, deflation)
     else:
-        eps = slice_eps(S, window_interval(window, norm), abstol)
+        # slicing's estimates (Ritz residuals of the shifted, inverted problem of each
+        # sub-interval) undershot the true residual by up to 19x (2D relaxed test matrix:
+        # 1.16e-10 against the 0.1 tol asked): a margin of 100 accepts every pair there
+        eps = slice_eps(S, window_interval(window, norm), 0.1 * abstol)
     try:
         with SliceInertiaOptions(comm if method == "slice" else None):
             spec = _solve_and_collect(comm, eps, S, system, kind=kind, method=method, k=k,

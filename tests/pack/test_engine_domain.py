@@ -334,7 +334,7 @@ def test_search_points_are_the_plans_points_moved_and_folded(monkeypatch, numpy_
 
 
 def test_slab_shares_follow_the_measured_work_and_change_no_bit(monkeypatch):
-    """Load balance by measured work (SlabEngine._weigh): when rank r reports r + 1 busy
+    """Load balance by measured work (SlabEngine.weigh): when rank r reports r + 1 busy
     seconds for its (equal) share of particles, the next ghost plan gives the ranks particles in
     proportion to their speed, 1 / (r + 1) (to the count histogram's resolution), and the run
     goes on bitwise as with equal slabs: positions, forces and FIRE's sums."""
@@ -348,7 +348,7 @@ def test_slab_shares_follow_the_measured_work_and_change_no_bit(monkeypatch):
         s = eng.start()
         if skew:
             eng.busy = COMM.rank + 1.0
-            eng._weigh()
+            eng.weigh()
         for _ in range(120):
             s = eng.step(0.05, False, 0.95, 0.02, s)
         runs.append((eng, s, gathered(eng, eng.xu), gathered(eng, eng.f)))
