@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """What this machine gives a second core, before any code's parallel overhead: each workload
 timed alone on one core, then as two independent copies on two cores at once (no MPI, no
-communication, nothing shared but the machine), interleaved, repeated, medians.
+communication, nothing shared but the machine; the two copies' timed parts start together
+once both are set up), interleaved, repeated, medians.
 
     .venv/bin/python scripts/probe_cores.py --repeat 5 --n 8192 32768
 
@@ -41,6 +42,11 @@ PROBE_C = r"""
 #include <time.h>
 static double now(void) { struct timespec t; clock_gettime(CLOCK_MONOTONIC, &t);
                           return t.tv_sec + 1e-9 * t.tv_nsec; }
+static void ready(void) { /* set up: tell the parent, wait for its go (both copies start together) */
+    char go[8];
+    puts("ready");
+    fflush(stdout);
+    if (!fgets(go, sizeof go, stdin)) exit(1); }
 static double chase(size_t bytes, long iters) {
     size_t n = bytes / sizeof(size_t), *a = malloc(n * sizeof(size_t)), p = 0;
     uint64_t s = 88172645463325252ull;
@@ -48,6 +54,7 @@ static double chase(size_t bytes, long iters) {
     for (size_t i = n - 1; i > 0; i--) { /* Sattolo's shuffle: one cycle through all */
         s ^= s << 13; s ^= s >> 7; s ^= s << 17;
         size_t j = s % i, t = a[i]; a[i] = a[j]; a[j] = t; }
+    ready();
     double t0 = now();
     for (long k = 0; k < iters; k++) p = a[p];
     double t = now() - t0;
@@ -58,6 +65,7 @@ int main(int argc, char **argv) {
     const char *w = argv[1]; double ns = 0;
     if (!strcmp(w, "alu")) {
         double x0 = 1, x1 = 2, x2 = 3, x3 = 4, a = 0.999999, b = 1e-9; long it = 400000000;
+        ready();
         double t0 = now();
         for (long k = 0; k < it; k++) { x0 = x0*a + b; x1 = x1*a + b; x2 = x2*a + b; x3 = x3*a + b; }
         ns = 1e9 * (now() - t0) / it;
@@ -67,6 +75,7 @@ int main(int argc, char **argv) {
     else if (!strcmp(w, "dram")) {
         size_t n = (size_t)64 << 20; double *a = malloc(n * 8), s = 0;
         for (size_t i = 0; i < n; i++) a[i] = (double)i;
+        ready();
         double t0 = now();
         for (int r = 0; r < 5; r++) for (size_t i = 0; i < n; i++) s += a[i];
         ns = 1e9 * (now() - t0) / (5.0 * n);
@@ -95,6 +104,8 @@ def fire_worker(n, steps):
                           diam, 2.0, 1.0, 0, n, acc)
 
     call(kernels.FIRE_FORCES)
+    print("ready", flush=True)  # set up: wait for the parent's go (both copies start together)
+    sys.stdin.readline()
     t = time.perf_counter()
     for _ in range(steps):
         call(step)
@@ -109,9 +120,16 @@ def command(work, exe, steps):
 
 
 def run(cmds):
-    """Start the commands at once (each pinned to its core); their printed numbers."""
-    procs = [subprocess.Popen(["taskset", "-c", str(core)] + cmd, stdout=subprocess.PIPE,
-                              text=True) for core, cmd in cmds]
+    """Start the commands (each pinned to its core), let their timed parts begin together once
+    all are set up (each prints "ready" and waits for a line); their printed numbers."""
+    procs = [subprocess.Popen(["taskset", "-c", str(core)] + cmd, stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True) for core, cmd in cmds]
+    for p in procs:
+        if p.stdout.readline().strip() != "ready":
+            raise SystemExit("a probe failed before its timed part")
+    for p in procs:
+        p.stdin.write("go\n")
+        p.stdin.flush()
     out = [p.communicate()[0] for p in procs]
     if any(p.returncode for p in procs):
         raise SystemExit(f"a probe failed: {[p.returncode for p in procs]}")
