@@ -4,6 +4,9 @@ packing spends its time (next to the stages of parjam.pack.packing.log_stage):
   parjam: force kernel      the compiled pair kernel / fused FIRE step (parjam.pack.kernels)
   parjam: FIRE allreduce    the one reduction of a fused FIRE step (the step's synchronisation)
   parjam: nbr rebuild       a Verlet-list rebuild (the engine's: migration, ghost plan, search)
+  parjam: nbr search        the compiled pair search inside a rebuild (cells, stencil, sort
+                            into (i, j) order), one per rebuild: the rest of a rebuild is the
+                            hand-over and the ghost plan
   parjam: halo exchange     the engine's ghosts: their forces sent before the allreduce and
                             received after it (two per FIRE step), their positions and
                             velocities pulled at a rebuild; Newton's ghost positions
@@ -28,8 +31,9 @@ FACTOR = "parjam: Newton factor"
 MIGRATE = "parjam: migration"
 STABILITY_LANCZOS = "parjam: stab Lanczos"
 STABILITY_INERTIA = "parjam: stab inertia"
+SEARCH = "parjam: nbr search"
 NAMES = (FORCE, ALLREDUCE, REBUILD, HALO, ASSEMBLY, FACTOR, MIGRATE, STABILITY_LANCZOS,
-         STABILITY_INERTIA)
+         STABILITY_INERTIA, SEARCH)
 
 _events = {}
 

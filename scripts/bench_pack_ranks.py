@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """FIRE steps of one packing on 1 and 2 ranks, this tree against an older one, interleaved in one
 run: the per-step time, the 2-rank speed-up and its breakdown into parjam's log events (force
-kernel, halo exchange, allreduce, neighbour rebuild, migration) and the wait that load
-imbalance causes.  Self-contained: writes JSON, prints a table.
+kernel, halo exchange, allreduce, neighbour rebuild, the compiled pair search inside it,
+migration) and the wait that load imbalance causes.  Self-contained: writes JSON, prints a table.
 
     source scripts/mpi-env
     nice .venv/bin/python scripts/bench_pack_ranks.py --old house --n 4096 16384 65536 \\
@@ -17,6 +17,10 @@ in both trees), then --steps FIRE steps are timed between barriers (wall time, a
 CPU time of the slowest rank).  The order of the (tree, ranks) runs is rotated from one repeat
 to the next, so that a change of load on a shared machine hits all of them alike; the table
 gives medians over the repeats, and the load average before and after.
+
+``--halo-margin 1 2.2 4`` runs this tree with those ghost margins of the slab engine (in skins:
+the halo's reach beyond the cutoff, which sets how many rebuilds search the same ghosts again
+before a new ghost plan) side by side, as trees ``new_m1``, ``new_m2.2``, ``new_m4``.
 
 ``--warm 0 --steps 1000000 --ftol 1e-13`` times a whole quench instead, from the random start
 to max|F| < ftol: the per-step cost a user pays over a minimisation, early steps that rebuild the
@@ -36,7 +40,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 EVENTS = {"kernel": "parjam: force kernel", "allreduce": "parjam: FIRE allreduce",
           "rebuild": "parjam: nbr rebuild", "halo": "parjam: halo exchange",
-          "migration": "parjam: migration"}
+          "migration": "parjam: migration", "search": "parjam: nbr search"}
 
 
 def worker(args):
@@ -48,6 +52,7 @@ def worker(args):
     env.init()
     PETSc = env.petsc()
     from parjam import logevents
+    from parjam.pack import engine
     from parjam.pack.fire import FireParams, fire
     from parjam.pack.forces import ForceField
     from parjam.pack.packing import random_packing
@@ -55,6 +60,8 @@ def worker(args):
     comm = PETSc.COMM_WORLD
     mpi = comm.tompi4py()
     n = args.n[0]
+    if args.halo_margin:
+        engine.HALO_MARGIN = args.halo_margin[0]
     pack = random_packing(args.dim, n, args.phi, 2.0, "mono", 1.4,
                           np.random.default_rng(args.seed))
     skin = None if args.skin is None else args.skin * float(np.min(pack.diam))
@@ -65,7 +72,8 @@ def worker(args):
     if args.steady:
         return steady(args, ff, mpi, n)
     PETSc.Log.begin()
-    names = [EVENTS[k] for k in EVENTS]
+    known = {k: n for k, n in EVENTS.items() if n in logevents.NAMES}  # an older tree: fewer
+    names = [known[k] for k in known]
     before = {n: logevents.event(n).getPerfInfo()["time"] for n in names}
     counts0 = {n: logevents.event(n).getPerfInfo()["count"] for n in names}
     mpi.Barrier()
@@ -73,8 +81,10 @@ def worker(args):
     res = fire(ff, args.ftol, params=FireParams(max_steps=args.steps))
     mpi.Barrier()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    ev = {k: logevents.event(n).getPerfInfo()["time"] - before[n] for k, n in EVENTS.items()}
-    cnt = {k: logevents.event(n).getPerfInfo()["count"] - counts0[n] for k, n in EVENTS.items()}
+    ev = {k: logevents.event(n).getPerfInfo()["time"] - before[n] if k in known else 0.0
+          for k, n in EVENTS.items()}
+    cnt = {k: logevents.event(n).getPerfInfo()["count"] - counts0[n] if k in known else 0
+           for k, n in EVENTS.items()}
     per_rank = mpi.gather({"cpu": cpu, "events": ev}, root=0)
     if comm.getRank() == 0:
         steps = res.fire_steps
@@ -129,7 +139,7 @@ def old_tree(rev):
     return dest
 
 
-def run_one(tree, ranks, args, n):
+def run_one(tree, ranks, args, n, margin=None):
     mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--n", str(n),
            "--dim", str(args.dim), "--phi", str(args.phi), "--steps", str(args.steps),
@@ -137,6 +147,8 @@ def run_one(tree, ranks, args, n):
     cmd += ["--steady"] if args.steady else []
     if args.skin is not None:
         cmd += ["--skin", str(args.skin)]
+    if margin is not None:
+        cmd += ["--halo-margin", repr(margin)]
     if ranks > 1:
         cmd = mpirun + ["-n", str(ranks)] + cmd
     env = dict(os.environ, PYTHONPATH=tree, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
@@ -172,6 +184,10 @@ def main():
     ap.add_argument("--ftol", type=float, default=0.0,
                     help="stop the timed FIRE steps when max|F| < FTOL (with --warm 0 and a "
                          "large --steps: a whole quench, the same steps on any number of ranks)")
+    ap.add_argument("--halo-margin", type=float, nargs="+", default=None,
+                    help="compare these ghost margins of the slab engine (in skins; "
+                         "parjam.pack.engine.HALO_MARGIN, default 2.2) side by side, as trees "
+                         "'new_m<M>'")
     ap.add_argument("--steady", action="store_true",
                     help="time each step alone at a fixed dt and report its 10th percentile "
                          "(the steps no other job interrupted) instead of FIRE's mean")
@@ -179,9 +195,13 @@ def main():
     if args.worker:
         worker(args)
         return
-    trees = {"new": ROOT}
+    if args.halo_margin and any(not 0.0 <= m < 100.0 for m in args.halo_margin):
+        sys.exit("bench_pack_ranks: --halo-margin takes margins in [0, 100) skins")
+    # label -> (tree, ghost margin or None for the tree's own)
+    trees = ({f"new_m{m:g}": (ROOT, m) for m in args.halo_margin} if args.halo_margin
+             else {"new": (ROOT, None)})
     if args.old:
-        trees["old"] = old_tree(args.old)
+        trees["old"] = (old_tree(args.old), None)
     runs = []
     load = [os.getloadavg()]
     configs = [(t, p) for t in trees for p in args.ranks]
@@ -189,7 +209,8 @@ def main():
         for rep in range(args.repeat):
             k = rep % len(configs)
             for tree, p in configs[k:] + configs[:k]:
-                r = run_one(trees[tree], p, args, n)
+                path, margin = trees[tree]
+                r = run_one(path, p, args, n, margin)
                 r.update(tree=tree, repeat=rep, load=os.getloadavg()[0])
                 runs.append(r)
                 print(f"N = {n} {tree:>3} P = {p}: {r['ms_per_step']:.3f} ms/step, "
@@ -214,7 +235,7 @@ def main():
                          if a["n"] == b["n"] == n and a["tree"] == b["tree"] == tree
                          and a["repeat"] == b["repeat"] and a["ranks"] == 1 and b["ranks"] == 2]
                 row[f"{tree}_speedup"] = median([a / b for a, b in pairs])
-        if "old" in trees:  # new against old, per rank count measured
+        if "old" in trees and "new" in trees:  # new against old, per rank count measured
             for p in args.ranks:
                 row[f"new_over_old_{p}"] = row[f"new_{p}"] / row[f"old_{p}"]
         summary.append(row)

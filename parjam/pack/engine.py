@@ -48,7 +48,7 @@ import numpy as np
 
 from parjam.pack import kernels, rowops
 from parjam.net.domain import SlabDomain, as_mpi, send_rows
-from parjam.logevents import ALLREDUCE, FORCE, HALO, MIGRATE, REBUILD, event
+from parjam.logevents import ALLREDUCE, FORCE, HALO, MIGRATE, REBUILD, SEARCH, event
 
 # new slab bounds when the most loaded rank would hold 2 % more than the mean after a rebuild
 # (a rebuild's hand-over moves the particles anyway; new bounds cost one histogram allreduce)
@@ -234,8 +234,9 @@ class SlabEngine:
         # before the next plan and the margin (the ghosts beyond it in layers of their own)
         slab = self.domain.bounds[self.rank:self.rank + 2] + np.array([-1.5, 1.5]) * self.margin
         t = time.perf_counter()
-        self.pi, self.pj = kernels.slab_pairs(pts, self.L, self.cut, src, gid, kinds, low, cap,
-                                              self.scratch, slab=slab)
+        with event(SEARCH):
+            self.pi, self.pj = kernels.slab_pairs(pts, self.L, self.cut, src, gid, kinds, low,
+                                                  cap, self.scratch, slab=slab)
         self.busy += time.perf_counter() - t
         self._ghost_plan(halo, foreign)
         self._arrays(*(a[foreign] for a in halo.values), halo.ids[foreign])
@@ -253,8 +254,9 @@ class SlabEngine:
         self.kernel = self.pi = self.pj = None
         t = time.perf_counter()
         pts = rowops.search_points(src, self.pos, offset, self.L, ref=self.ref)  # ref = xu
-        self.pi, self.pj = kernels.slab_pairs(pts, self.L, self.cut, src, gid, kinds, low, cap,
-                                              self.scratch, slab=slab)
+        with event(SEARCH):
+            self.pi, self.pj = kernels.slab_pairs(pts, self.L, self.cut, src, gid, kinds, low,
+                                                  cap, self.scratch, slab=slab)
         self.busy += time.perf_counter() - t
         del pts
         self.acc[-1] = 0
@@ -284,9 +286,11 @@ class SlabEngine:
         search (kernels.cell_pair_lists, the serial kernel's) lists the pairs, rows = ids
         (sorted), in (i, j) order, with no halo.  False when that search does not apply (fewer
         than 3 cells a side; no compiled library): the slab search serves then."""
-        got = kernels.cell_pair_lists(xw, self.L, self.cut, 0, len(self.ids), cap, self.scratch)
-        if got is None:
+        if not kernels.cell_search_applies(len(self.ids), self.d, self.L, self.cut):
             return False
+        with event(SEARCH):
+            got = kernels.cell_pair_lists(xw, self.L, self.cut, 0, len(self.ids), cap,
+                                          self.scratch)
         self.pi, self.pj = got
         self.send_index = self.unpack = np.empty(0, dtype=np.int64)
         self.sendbuf = self.recvbuf = np.empty((0, self.d))

@@ -377,16 +377,24 @@ class Scratch:
         return a.reshape(n, width) if width > 1 else a
 
 
+def cell_search_applies(n, d, L, cutoff):
+    """Whether ``cell_pair_lists`` serves n points in d dimensions (the compiled library, at
+    least 3 cells of edge >= cutoff a side, not many more cells than points)."""
+    nc = int(L // cutoff) if cutoff > 0 else 0
+    return library() is not None and nc >= 3 and d in (2, 3) and nc ** d <= 8 * n + 1000
+
+
 def cell_pair_lists(pos, L, cutoff, lo, hi, cap=None, scratch=None):
     """cell_pairs as two arrays (pi, pj) (the engine's form on one rank); ``cap``: the expected
     number of pairs (more are found by a second pass); ``scratch``: a Scratch for the work
     arrays (fresh ones if None).  The search covers the whole box (half stencil,
-    ``parjam_cell_pairs``); for a part [lo, hi) of the rows the pairs touching it are kept."""
-    lib = library()
+    ``parjam_cell_pairs``); for a part [lo, hi) of the rows the pairs touching it are kept.
+    None where it does not apply (``cell_search_applies``)."""
     n, d = pos.shape
-    nc = int(L // cutoff) if cutoff > 0 else 0
-    if lib is None or nc < 3 or d not in (2, 3) or nc ** d > 8 * n + 1000:
+    if not cell_search_applies(n, d, L, cutoff):
         return None
+    lib = library()
+    nc = int(L // cutoff)
     pos = np.ascontiguousarray(pos, dtype=np.float64)
     work = Scratch() if scratch is None else scratch
     start = work.get("start", nc ** d + 1)

@@ -40,6 +40,8 @@ def test_events_count_kernel_calls_rebuilds_halo_and_newton(world):
     assert steps == 300
     checks, plans = ff_checks[0], ff_plans[0]
     assert 0 < fired[logevents.REBUILD] < steps
+    # one compiled pair search inside every rebuild, plan or not
+    assert fired[logevents.SEARCH] == fired[logevents.REBUILD]
     # one kernel call per step, plus the start and the end's (the energy, which the steps did
     # not sum); two in a step where one rank rebuilt the list between the update and the
     # forces, and where several ranks reduced the largest displacement between them (at every
