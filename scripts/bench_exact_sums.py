@@ -25,7 +25,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from parjam.pack import kernels  # noqa: E402
+from parjam.pack import cellsearch, kernels  # noqa: E402
 from parjam.pack.randomstart import random_packing  # noqa: E402
 
 SRC = os.path.join(ROOT, "parjam", "pack", "_kernels.c")
@@ -94,7 +94,7 @@ def main():
         for n, alpha in ((n, a) for n in args.n for a in args.alpha):
             pack = random_packing(3, n, 0.70, alpha, "mono", 1.4, np.random.default_rng(0))
             x0, diam, L = pack.pos.copy(), pack.diam.copy(), pack.L
-            pi, pj = kernels.cell_pair_lists(np.mod(x0, L), L, diam.max() + 0.2 * diam.min(),
+            pi, pj = cellsearch.cell_pair_lists(np.mod(x0, L), L, diam.max() + 0.2 * diam.min(),
                                              0, n)
             times = {k: [] for k in fns}
             for _ in range(args.repeat):

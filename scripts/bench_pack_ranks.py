@@ -12,9 +12,9 @@ migration) and the wait that load imbalance causes.  Self-contained: writes JSON
 and runs it with this interpreter (its compiled kernels are built into $PARJAM_CACHE on first
 use); ``--old PATH`` uses a checkout as it is.  Each measurement is a fresh process
 (`mpirun -n P python bench_pack_ranks.py --worker ...`): a random start (3D, monodisperse,
-harmonic, phi = 0.70 by default) is first quenched for --warm FIRE steps (untimed, the same
-in both trees), then --steps FIRE steps are timed between barriers (wall time, and the process
-CPU time of the slowest rank).  The order of the (tree, ranks) runs is rotated from one repeat
+harmonic, phi = 0.70 by default; --dispersity bi for the 50:50 1 : 1.4 mixture) is first
+quenched for --warm FIRE steps (untimed, the same in both trees), then --steps FIRE steps are
+timed between barriers (wall time, and the process CPU time of the slowest rank).  The order of the (tree, ranks) runs is rotated from one repeat
 to the next, so that a change of load on a shared machine hits all of them alike; the table
 gives medians over the repeats, and the load average before and after.
 
@@ -62,7 +62,7 @@ def worker(args):
     n = args.n[0]
     if args.halo_margin:
         engine.HALO_MARGIN = args.halo_margin[0]
-    pack = random_packing(args.dim, n, args.phi, 2.0, "mono", 1.4,
+    pack = random_packing(args.dim, n, args.phi, 2.0, args.dispersity, 1.4,
                           np.random.default_rng(args.seed))
     skin = None if args.skin is None else args.skin * float(np.min(pack.diam))
     ff = ForceField(comm, pack.diam, pack.L, args.dim, 2.0, skin=skin)
@@ -143,7 +143,8 @@ def run_one(tree, ranks, args, n, margin=None):
     mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--n", str(n),
            "--dim", str(args.dim), "--phi", str(args.phi), "--steps", str(args.steps),
-           "--warm", str(args.warm), "--seed", str(args.seed), "--ftol", repr(args.ftol)]
+           "--warm", str(args.warm), "--seed", str(args.seed), "--ftol", repr(args.ftol),
+           "--dispersity", args.dispersity]
     cmd += ["--steady"] if args.steady else []
     if args.skin is not None:
         cmd += ["--skin", str(args.skin)]
@@ -171,6 +172,8 @@ def main():
     ap.add_argument("--n", type=int, nargs="+", default=[4096, 16384, 65536])
     ap.add_argument("--dim", type=int, default=3)
     ap.add_argument("--phi", type=float, default=0.70)
+    ap.add_argument("--dispersity", choices=("mono", "bi", "poly"), default="mono",
+                    help="the diameters (bi: 50:50 at 1 : 1.4; poly: uniform in [1, 1.4])")
     ap.add_argument("--steps", type=int, default=1000, help="timed FIRE steps")
     ap.add_argument("--warm", type=int, default=300, help="untimed FIRE steps first")
     ap.add_argument("--seed", type=int, default=1)

@@ -89,12 +89,12 @@ int main(int argc, char **argv) {
 
 def fire_worker(n, steps):
     """ms per fused FIRE step on a random start of n particles (this process, one core)."""
-    from parjam.pack import kernels
+    from parjam.pack import cellsearch, kernels
     from parjam.pack.randomstart import random_packing
 
     pack = random_packing(3, n, 0.70, 2.0, "mono", 1.4, np.random.default_rng(0))
     x, diam, L = pack.pos.copy(), pack.diam.copy(), pack.L
-    pi, pj = kernels.cell_pair_lists(np.mod(x, L), L, diam.max() + 0.2 * diam.min(), 0, n)
+    pi, pj = cellsearch.cell_pair_lists(np.mod(x, L), L, diam.max() + 0.2 * diam.min(), 0, n)
     v, f, ref = np.zeros_like(x), np.zeros_like(x), x.copy()
     acc = np.zeros(kernels.FIRE_ACC, dtype=np.int64)
     step = kernels.FIRE_UPDATE | kernels.FIRE_FORCES

@@ -8,9 +8,10 @@ the spatial domain decomposition of :mod:`parjam.net` and returns results: writi
 - :mod:`.packing` -- the Jammer: bisection, ladder, pressures of one configuration.
 - :mod:`.ensemble` -- the states of one ensemble member and the flags that say when a state is
   not what it seems.
-- :mod:`.engine`, :mod:`.kernels` (+ ``_kernels.c``), :mod:`.rowops`, :mod:`.fire`,
-  :mod:`.forces`, :mod:`.minimize` -- the slab engine, the compiled pair kernel and the row
-  operations of a rebuild and of the ghosts' exchange, FIRE and Newton.
+- :mod:`.engine`, :mod:`.kernels` (+ ``_kernels.c``), :mod:`.cellsearch`, :mod:`.rowops`,
+  :mod:`.fire`, :mod:`.forces`, :mod:`.minimize` -- the slab engine, the compiled pair kernel,
+  the neighbour searches by cells, the row operations of a rebuild and of the ghosts'
+  exchange, FIRE and Newton.
 - :mod:`.randomstart`, :mod:`.filestart` -- where a configuration starts (a file's rows are
   read by :mod:`parjam.files.rowio`).
 - :mod:`.stability`, :mod:`.jamnet` -- the stable-minimum check and the per-state network.

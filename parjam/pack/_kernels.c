@@ -798,9 +798,10 @@ static void bucket_by_cell(int64_t n, int64_t ncells, const int64_t *cellof, int
 static const int ROWS3[5][3] = {{0, 0, 0}, {0, 1, -1}, {1, -1, -1}, {1, 0, -1}, {1, 1, -1}};
 static const int ROWS2[2][3] = {{0, 0, 0}, {1, 0, -1}};
 
-static ALWAYS_INLINE int64_t scan_run(const int d, int64_t a, int64_t b0, int64_t b1,
-                                      const double *xa, const double *sp, double cut2,
-                                      int64_t count, int64_t cap, int64_t *ta, int64_t *tb)
+static ALWAYS_INLINE int64_t scan_run(const int d, const int per, int64_t a, int64_t b0,
+                                      int64_t b1, const double *xa, const double *sp,
+                                      double cut2, const double *sh, double ha, int64_t count,
+                                      int64_t cap, int64_t *ta, int64_t *tb)
 {
     for (int64_t b = b0; b < b1; b++) {
         double r2 = 0.0;
@@ -812,15 +813,22 @@ static ALWAYS_INLINE int64_t scan_run(const int d, int64_t a, int64_t b0, int64_
             ta[count] = a;
             tb[count] = b;
         }
-        count += r2 <= cut2;
+        if (per) { /* the pair's own reach: sigma_ab + skin (ha = d_a / 2 + skin) */
+            const double c = ha + sh[b];
+            count += r2 <= c * c;
+        } else {
+            count += r2 <= cut2;
+        }
     }
     return count;
 }
 
-static ALWAYS_INLINE int64_t half_stencil(const int d, int64_t n0, int64_t nc, int open0,
-                                          double L, double cutoff, const int64_t *start,
-                                          const double *sp, const unsigned char *keep0,
-                                          int64_t cap, int64_t *ta, int64_t *tb)
+static ALWAYS_INLINE int64_t half_stencil(const int d, const int per, int64_t n0, int64_t nc,
+                                          int open0, double L, double cutoff,
+                                          const int64_t *start, const double *sp,
+                                          const double *sh, double skin,
+                                          const unsigned char *keep0, int64_t cap, int64_t *ta,
+                                          int64_t *tb)
 {
     const double cut2 = cutoff * cutoff;
     const int64_t n1 = d == 3 ? nc : 1, nl = nc; /* nl: cells along the last axis */
@@ -877,6 +885,7 @@ static ALWAYS_INLINE int64_t half_stencil(const int d, int64_t n0, int64_t nc, i
                         run_s[nruns++] = L;
                     }
                     for (int64_t a = a0; a < a1; a++) {
+                        const double ha = per ? sh[a] + skin : 0.0;
                         for (int r = 0; r < nruns; r++) {
                             shift[d - 1] = run_s[r];
                             /* x_b + shift - x_a = x_b - (x_a - shift) */
@@ -886,8 +895,8 @@ static ALWAYS_INLINE int64_t half_stencil(const int d, int64_t n0, int64_t nc, i
                             /* the own row's first run starts with the cell itself: only the
                              * points after a */
                             const int64_t b0 = s == 0 && r == 0 ? a + 1 : run_b0[r];
-                            count = scan_run(d, a, b0, run_b1[r], xa, sp, cut2, count, cap,
-                                             ta, tb);
+                            count = scan_run(d, per, a, b0, run_b1[r], xa, sp, cut2, sh, ha,
+                                             count, cap, ta, tb);
                         }
                     }
                 }
@@ -895,13 +904,24 @@ static ALWAYS_INLINE int64_t half_stencil(const int d, int64_t n0, int64_t nc, i
     return count;
 }
 
+/* sh NULL: every pair within ``cutoff``; else each pair (a, b) within its own reach
+ * sh[a] + sh[b] + skin (sh: half the diameters, in cell order; <= cutoff). */
 static int64_t half_stencil_d(int d, int64_t n0, int64_t nc, int open0, double L, double cutoff,
-                              const int64_t *start, const double *sp,
-                              const unsigned char *keep0, int64_t cap, int64_t *ta, int64_t *tb)
+                              const int64_t *start, const double *sp, const double *sh,
+                              double skin, const unsigned char *keep0, int64_t cap, int64_t *ta,
+                              int64_t *tb)
 {
-    if (d == 3)
-        return half_stencil(3, n0, nc, open0, L, cutoff, start, sp, keep0, cap, ta, tb);
-    return half_stencil(2, n0, nc, open0, L, cutoff, start, sp, keep0, cap, ta, tb);
+#define PJ_STENCIL(D, PER) \
+    return half_stencil(D, PER, n0, nc, open0, L, cutoff, start, sp, sh, skin, keep0, cap, ta, tb)
+    if (d == 3) {
+        if (sh)
+            PJ_STENCIL(3, 1);
+        PJ_STENCIL(3, 0);
+    }
+    if (sh)
+        PJ_STENCIL(2, 1);
+    PJ_STENCIL(2, 0);
+#undef PJ_STENCIL
 }
 
 /* Counting sort of the pairs (lo[p], up[p]) by row lo[p] in [0, nrows) into (pi, pj) (off:
@@ -934,15 +954,17 @@ static void sort_rows(int64_t npairs, int64_t nrows, const int64_t *lo, const in
         }
 }
 
-/* Neighbour search of a whole periodic box by cells (kernels.cell_pair_lists): the pairs
+/* Neighbour search of a whole periodic box by cells (cellsearch.cell_pair_lists): the pairs
  * i < j with |x_j - x_i| <= cutoff (minimum image) of the n points ``pos`` folded into [0, L),
- * each once, in (i, j) order, in (pi, pj).  The box holds nc >= 3 cells of edge >= cutoff per
- * direction.  Scratch: start (nc^d + 1), order and cellof (n), sp (n d), off (n + 1), ta and
- * tb (cap).  Returns the number of pairs, or -(number needed) when cap is too small. */
+ * each once, in (i, j) order, in (pi, pj); given the diameters ``diam`` (else NULL), only the
+ * pairs within their own reach (d_i + d_j) / 2 + skin <= cutoff.  The box holds nc >= 3 cells
+ * of edge >= cutoff per direction.  Scratch: start (nc^d + 1), order and cellof (n), sp (n d),
+ * sh (n, with diam), off (n + 1), ta and tb (cap).  Returns the number of pairs, or -(number
+ * needed) when cap is too small. */
 int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double cutoff, int nc,
-                          int64_t *start, int64_t *order, int64_t *cellof, double *sp,
-                          int64_t *off, int64_t cap, int64_t *ta, int64_t *tb, int64_t *pi,
-                          int64_t *pj)
+                          const double *diam, double skin, int64_t *start, int64_t *order,
+                          int64_t *cellof, double *sp, double *sh, int64_t *off, int64_t cap,
+                          int64_t *ta, int64_t *tb, int64_t *pi, int64_t *pj)
 {
     int64_t ncells = 1;
     for (int a = 0; a < d; a++)
@@ -960,7 +982,11 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
     for (int64_t q = 0; q < n; q++)
         for (int a = 0; a < d; a++)
             sp[q * d + a] = pos[order[q] * d + a];
-    const int64_t count = half_stencil_d(d, nc, nc, 0, L, cutoff, start, sp, NULL, cap, ta, tb);
+    if (diam)
+        for (int64_t q = 0; q < n; q++)
+            sh[q] = 0.5 * diam[order[q]];
+    const int64_t count = half_stencil_d(d, nc, nc, 0, L, cutoff, start, sp, diam ? sh : NULL,
+                                         skin, NULL, cap, ta, tb);
     if (count > cap)
         return -count;
     for (int64_t p = 0; p < count; p++) { /* cell order -> ids, lower end first */
@@ -979,11 +1005,11 @@ int64_t parjam_cell_pairs(int64_t n, int d, const double *pos, double L, double 
  * x layers, with the minimum image per candidate along the periodic directions; each row
  * sorted by the upper end's global id. */
 static int64_t slab_narrow(int d, const double *pos, double L, double cutoff, int64_t nx,
-                           int64_t nc, const int64_t *row, const int64_t *gid,
-                           const int64_t *kind, int64_t nlow, const int64_t *low,
-                           const int64_t *start, const int64_t *order, const int64_t *cellof,
-                           const double *sp, const int64_t *sg, int64_t cap, int64_t *pi,
-                           int64_t *pj)
+                           int64_t nc, const double *diam, double skin, const double *sh,
+                           const int64_t *row, const int64_t *gid, const int64_t *kind,
+                           int64_t nlow, const int64_t *low, const int64_t *start,
+                           const int64_t *order, const int64_t *cellof, const double *sp,
+                           const int64_t *sg, int64_t cap, int64_t *pi, int64_t *pj)
 {
     const double cut2 = cutoff * cutoff;
     int64_t cells_x = 1; /* cells per x layer */
@@ -1012,8 +1038,13 @@ static int64_t slab_narrow(int d, const double *pos, double L, double cutoff, in
                         x -= L * rint(x / L);
                     r2 += x * x;
                 }
-                if (r2 > cut2)
+                if (diam) {
+                    const double c = 0.5 * diam[i] + skin + sh[q];
+                    if (r2 > c * c)
+                        continue;
+                } else if (r2 > cut2) {
                     continue;
+                }
                 if (count < cap) {
                     pi[count] = i;
                     pj[count] = q; /* a cell-order index until the row is sorted */
@@ -1041,7 +1072,7 @@ static int64_t slab_narrow(int d, const double *pos, double L, double cutoff, in
     return count <= cap ? count : -count;
 }
 
-/* Neighbour search of one slab (kernels.slab_pairs, parjam.pack.engine): n search points -- a rank's
+/* Neighbour search of one slab (cellsearch.slab_pairs, parjam.pack.engine): n search points -- a rank's
  * owned particles (kind 0), images of its own particles across the periodic boundary (kind 1)
  * and ghosts of other ranks (kind 2) -- open along axis 0 (the halo is unwrapped there) and
  * periodic with edge L along the others.  A pair of points closer than ``cutoff`` is kept when
@@ -1051,15 +1082,18 @@ static int64_t slab_narrow(int d, const double *pos, double L, double cutoff, in
  * ``low`` (kinds 0 and 2 by global id) and, within a group, by the upper end's global id: the
  * global (i, j) order, so the contact forces on a particle are summed in the same order on any
  * number of ranks.  Cells: nx of edge w0 along axis 0 from x0min, nc of edge L / nc along the
- * others: the half stencil when nc >= 3, else ``slab_narrow``.  Scratch: start (ncells + 1),
- * order, cellof, sg, place (n), sp (n d), off (nlow + 1), ta and tb (cap).
+ * others: the half stencil when nc >= 3, else ``slab_narrow``.  Given the points' diameters
+ * ``diam`` (else NULL) only the pairs within their own reach (d_a + d_b) / 2 + skin <= cutoff
+ * are kept.  Scratch: start (ncells + 1), order, cellof, sg, place (n), sp (n d), sh (n, with
+ * diam), off (nlow + 1), ta and tb (cap).
  * Returns the number of pairs, or -(number needed) when cap is too small. */
 int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double cutoff,
-                          double x0min, double w0, int64_t nx, int64_t nc, const int64_t *row,
-                          const int64_t *gid, const int64_t *kind, int64_t nlow,
-                          const int64_t *low, int64_t *start, int64_t *order, int64_t *cellof,
-                          double *sp, int64_t *sg, int64_t *place, int64_t *off, int64_t cap,
-                          int64_t *ta, int64_t *tb, int64_t *pi, int64_t *pj)
+                          double x0min, double w0, int64_t nx, int64_t nc, const double *diam,
+                          double skin, const int64_t *row, const int64_t *gid,
+                          const int64_t *kind, int64_t nlow, const int64_t *low, int64_t *start,
+                          int64_t *order, int64_t *cellof, double *sp, double *sh, int64_t *sg,
+                          int64_t *place, int64_t *off, int64_t cap, int64_t *ta, int64_t *tb,
+                          int64_t *pi, int64_t *pj)
 {
     int64_t ncells = nx;
     for (int a = 1; a < d; a++)
@@ -1082,13 +1116,15 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
         for (int a = 0; a < d; a++)
             sp[q * d + a] = pos[k * d + a];
         sg[q] = 2 * gid[k] + (kind[k] != 0);
+        if (diam)
+            sh[q] = 0.5 * diam[k];
     }
     if (nc < 3)
-        return slab_narrow(d, pos, L, cutoff, nx, nc, row, gid, kind, nlow, low, start, order,
-                           cellof, sp, sg, cap, pi, pj);
+        return slab_narrow(d, pos, L, cutoff, nx, nc, diam, skin, sh, row, gid, kind, nlow, low,
+                           start, order, cellof, sp, sg, cap, pi, pj);
     /* a layer of cells along axis 0 with no owned point pairs only with the next layer's owned
      * points: the search skips the pairs of two such layers (the halo's ghosts among
-     * themselves, when the caller aligns the layers with the slab: kernels.slab_pairs) */
+     * themselves, when the caller aligns the layers with the slab: cellsearch.slab_pairs) */
     int64_t cells_x = 1;
     for (int a = 1; a < d; a++)
         cells_x *= nc;
@@ -1099,7 +1135,8 @@ int64_t parjam_slab_pairs(int64_t n, int d, const double *pos, double L, double 
             if (kind[k] == 0)
                 keep0[cellof[k] / cells_x] = 1;
     }
-    const int64_t found = half_stencil_d(d, nx, nc, 1, L, cutoff, start, sp, keep0, cap, ta, tb);
+    const int64_t found = half_stencil_d(d, nx, nc, 1, L, cutoff, start, sp, diam ? sh : NULL,
+                                         skin, keep0, cap, ta, tb);
     free(keep0);
     if (found > cap)
         return -found;

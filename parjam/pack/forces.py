@@ -9,7 +9,7 @@ Nothing here gathers the whole configuration: files and checkpoints go by rows
 or engine values on every rank) are parjam.testing.gather's, outside the packing path.
 
 For Newton and single evaluations the Verlet list holds the pairs that touch a rank's block
-rows: on one rank from linked cells in compiled code (kernels.cell_pairs; in a box of fewer
+rows: on one rank from linked cells in compiled code (cellsearch.cell_pairs; in a box of fewer
 than 3 cells a side a k-d tree), on several from the slabs of parjam.net.domain (``slab_pairs``:
 the block rows visit their slabs, one ghost exchange, each pair back to the block rows of its
 ends), so no rank gathers the positions; each rank computes the forces on its particles only
@@ -26,7 +26,7 @@ import numpy as np
 
 from parjam import env
 from parjam.net import exactsum
-from parjam.pack import kernels
+from parjam.pack import cellsearch, kernels
 from parjam.vib import hessian
 from parjam.net.domain import SlabDomain, send_rows
 from parjam.pack.engine import SlabEngine
@@ -129,7 +129,7 @@ class ForceField:
             else:
                 pos = self.local(self.x) if pos is None else pos
                 # linked cells in compiled code; the k-d tree when the box holds < 3 cells a side
-                self.pairs = kernels.cell_pairs(wrap(np.asarray(pos), self.L), self.L, cut,
+                self.pairs = cellsearch.cell_pairs(wrap(np.asarray(pos), self.L), self.L, cut,
                                                 self.lo, self.hi)
                 if self.pairs is None:
                     self.pairs = neighbour_pairs_touching(pos, self.L, cut, self.lo, self.hi)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from parjam.pack import kernels, rowops
+from parjam.pack import cellsearch, kernels, rowops
 from parjam.pack.engine import SlabEngine
 from parjam.pack.fire import FireParams, fire
 from parjam.pack.forces import ForceField
@@ -176,11 +176,11 @@ def test_the_same_on_three_ranks():
 
 
 def test_the_numpy_slab_search_lists_the_compiled_ones_pairs(monkeypatch):
-    """kernels.slab_pairs: the k-d tree fallback (PARJAM_KERNELS=numpy) lists the same pairs in
+    """cellsearch.slab_pairs: the k-d tree fallback (PARJAM_KERNELS=numpy) lists the same pairs in
     the same order as the compiled cell search, in a thin box (every cell once), one of 3 cells
     a side (the smallest the half stencil takes: the periodic images of a cell's neighbours
     meet) and a wide one (on one rank the compiled list there is the fully periodic cell
-    search's, kernels.cell_pair_lists: the same pairs in the same order as the slab search's)."""
+    search's, cellsearch.cell_pair_lists: the same pairs in the same order as the slab search's)."""
     for n, L in ((30, 2.4 * 1.2), (150, 3.1 * 1.2), (400, None)):
         if L is None:
             pack = quenched(3, "bi", n, 0.6, 0)
@@ -253,11 +253,11 @@ def test_merge_rows_is_a_concatenation_taken():
 
 
 @pytest.mark.parametrize("d, poly", [(3, "mono"), (2, "bi")])
-def test_every_rebuild_lists_every_pair_within_the_cutoff(d, poly):
+def test_every_rebuild_lists_every_pair_within_its_reach(d, poly):
     """The rebuilds that search the last ghost plan's rows again (no hand-over, no halo
     exchange: SlabEngine._search) and those that plan anew both list, over all ranks, exactly
-    the pairs closer than the cutoff at the rebuild's positions (a k-d tree over all particles:
-    none missing, none beyond it), through many rebuilds of a damped run from a random start
+    the pairs closer than their own reach (d_i + d_j) / 2 + skin at the rebuild's positions (a
+    k-d tree over all particles: none missing, none beyond it), through many rebuilds of a damped run from a random start
     in which particles cross slab and periodic boundaries: two halves of a start stream along
     axis 0 at +-0.5 through each other at the plane x_0 = L / 2 (on two ranks a slab boundary)
     and apart at x_0 = 0, ballistically (eps = 0: no forces), so that the drift since a plan is
@@ -279,8 +279,12 @@ def test_every_rebuild_lists_every_pair_within_the_cutoff(d, poly):
         x = np.mod(pos, pack.L)
         x = np.minimum(x, np.nextafter(pack.L, 0))
         tree = cKDTree(x, boxsize=pack.L)
-        inner = {tuple(p) for p in tree.query_pairs(eng.cut * (1 - 1e-9), output_type="ndarray")}
-        outer = {tuple(p) for p in tree.query_pairs(eng.cut * (1 + 1e-9), output_type="ndarray")}
+        near = tree.query_pairs(eng.cut * (1 + 1e-9), output_type="ndarray")
+        r = x[near[:, 1]] - x[near[:, 0]]
+        r = np.linalg.norm(r - pack.L * np.rint(r / pack.L), axis=1)
+        reach = 0.5 * (pack.diam[near[:, 0]] + pack.diam[near[:, 1]]) + eng.skin
+        inner = {tuple(p) for p in near[r < reach * (1 - 1e-9)]}
+        outer = {tuple(p) for p in near[r < reach * (1 + 1e-9)]}
         a, b = eng.row_ids[eng.pi], eng.row_ids[eng.pj]
         assert np.all(a < b)  # the global (i, j) order's lower end first
         mine = set(zip(a.tolist(), b.tolist()))

@@ -11,7 +11,7 @@ import pytest
 from mpi4py import MPI
 
 from parjam import env
-from parjam.pack import kernels, minimize
+from parjam.pack import cellsearch, minimize
 from parjam.pack.forces import ForceField
 from parjam.files.h5md import read_packing
 from parjam.net.system import wrap
@@ -43,7 +43,7 @@ def test_slab_pairs_are_the_cell_search(name):
     try:
         cut = ff.dmax + ff.skin
         got = ff.slab_pairs(cut)
-        want = kernels.cell_pairs(wrap(pack.pos, pack.L), pack.L, cut, ff.lo, ff.hi)
+        want = cellsearch.cell_pairs(wrap(pack.pos, pack.L), pack.L, cut, ff.lo, ff.hi)
         if want is None:  # no compiled library: the k-d tree's pairs
             from parjam.net.system import neighbour_pairs_touching
             want = neighbour_pairs_touching(pack.pos, pack.L, cut, ff.lo, ff.hi)
