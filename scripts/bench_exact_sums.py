@@ -95,7 +95,7 @@ def main():
             pack = random_packing(3, n, 0.70, alpha, "mono", 1.4, np.random.default_rng(0))
             x0, diam, L = pack.pos.copy(), pack.diam.copy(), pack.L
             pi, pj = cellsearch.cell_pair_lists(np.mod(x0, L), L, diam.max() + 0.2 * diam.min(),
-                                             0, n)
+                                                0, n)
             times = {k: [] for k in fns}
             for _ in range(args.repeat):
                 for k, fn in fns.items():

@@ -14,9 +14,10 @@ use); ``--old PATH`` uses a checkout as it is.  Each measurement is a fresh proc
 (`mpirun -n P python bench_pack_ranks.py --worker ...`): a random start (3D, monodisperse,
 harmonic, phi = 0.70 by default; --dispersity bi for the 50:50 1 : 1.4 mixture) is first
 quenched for --warm FIRE steps (untimed, the same in both trees), then --steps FIRE steps are
-timed between barriers (wall time, and the process CPU time of the slowest rank).  The order of the (tree, ranks) runs is rotated from one repeat
-to the next, so that a change of load on a shared machine hits all of them alike; the table
-gives medians over the repeats, and the load average before and after.
+timed between barriers (wall time, and the process CPU time of the slowest rank).  The order
+of the (tree, ranks) runs is rotated from one repeat to the next, so that a change of load on a
+shared machine hits all of them alike; the table gives medians over the repeats, and the load
+average before and after.
 
 ``--halo-margin 1 2.2 4`` runs this tree with those ghost margins of the slab engine (in skins:
 the halo's reach beyond the cutoff, which sets how many rebuilds search the same ghosts again

@@ -9,14 +9,14 @@ quantiles of the ranks' shares again, before the hand-over, when the counts woul
 than REBALANCE or the measured work asks for other shares: BALANCE_EVERY), plans the ghosts
 within cutoff + margin of the slab (cutoff = max diameter + skin, margin = HALO_MARGIN skins;
 ``SlabDomain.halo``: their positions, velocities and diameters pulled in one exchange) and lists
-the pairs of owned particles and ghosts in compiled code (``cellsearch.slab_pairs``; on one rank,
-where all ghosts are periodic images, the fully periodic cell search ``cellsearch.cell_pair_lists``,
-with no halo).  A pair is listed when it is within its own reach, (d_i + d_j) / 2 + skin
-(the cells' edge is the largest reach, max diameter + skin): a third fewer pairs in a 1 : 1.4
-mixture than one cutoff for all.  The neighbour rebuilds after a plan, while the displacements
-since it (summed over the lists, a bound every rank computes alike) stay within half the
-margin, search the same owned rows and ghosts again at their current positions, with no
-exchange at all (``rebuild``).
+the pairs of owned particles and ghosts in compiled code (``cellsearch.slab_pairs``; on one
+rank, where all ghosts are periodic images, the fully periodic cell search
+``cellsearch.cell_pair_lists``, with no halo).  A pair is listed when it is within its own
+reach, (d_i + d_j) / 2 + skin (the cells' edge is the largest reach, max diameter + skin): a
+third fewer pairs in a 1 : 1.4 mixture than one cutoff for all.  The neighbour rebuilds after
+a plan, while the displacements since it (summed over the lists, a bound every rank computes
+alike) stay within half the margin, search the same owned rows and ghosts again at their
+current positions, with no exchange at all (``rebuild``).
 Both searches visit each pair of neighbouring cells once (a half stencil) and sort the pairs
 into the global (i, j) order afterwards.
 
@@ -245,9 +245,9 @@ class SlabEngine:
         slab = self.domain.bounds[self.rank:self.rank + 2] + np.array([-1.5, 1.5]) * self.margin
         t = time.perf_counter()
         with event(SEARCH):
-            self.pi, self.pj = cellsearch.slab_pairs(pts, self.L, self.cut, src, gid, kinds, low,
-                                                  cap, self.scratch, slab=slab, diam=reach,
-                                                  skin=self.skin)
+            self.pi, self.pj = cellsearch.slab_pairs(pts, self.L, self.cut, src, gid, kinds,
+                                                     low, cap, self.scratch, slab=slab,
+                                                     diam=reach, skin=self.skin)
         self.busy += time.perf_counter() - t
         self._ghost_plan(halo, foreign)
         self._arrays(*(a[foreign] for a in halo.values), halo.ids[foreign])
@@ -266,9 +266,9 @@ class SlabEngine:
         t = time.perf_counter()
         pts = rowops.search_points(src, self.pos, offset, self.L, ref=self.ref)  # ref = xu
         with event(SEARCH):
-            self.pi, self.pj = cellsearch.slab_pairs(pts, self.L, self.cut, src, gid, kinds, low,
-                                                  cap, self.scratch, slab=slab, diam=reach,
-                                                  skin=self.skin)
+            self.pi, self.pj = cellsearch.slab_pairs(pts, self.L, self.cut, src, gid, kinds,
+                                                     low, cap, self.scratch, slab=slab,
+                                                     diam=reach, skin=self.skin)
         self.busy += time.perf_counter() - t
         del pts
         self.acc[-1] = 0
@@ -302,9 +302,9 @@ class SlabEngine:
             return False
         with event(SEARCH):
             got = cellsearch.cell_pair_lists(xw, self.L, self.cut, 0, len(self.ids), cap,
-                                          self.scratch,
-                                          diam=self.diam if self.mixture else None,
-                                          skin=self.skin)
+                                             self.scratch,
+                                             diam=self.diam if self.mixture else None,
+                                             skin=self.skin)
         self.pi, self.pj = got
         self.send_index = self.unpack = np.empty(0, dtype=np.int64)
         self.sendbuf = self.recvbuf = np.empty((0, self.d))

@@ -130,7 +130,7 @@ class ForceField:
                 pos = self.local(self.x) if pos is None else pos
                 # linked cells in compiled code; the k-d tree when the box holds < 3 cells a side
                 self.pairs = cellsearch.cell_pairs(wrap(np.asarray(pos), self.L), self.L, cut,
-                                                self.lo, self.hi)
+                                                   self.lo, self.hi)
                 if self.pairs is None:
                     self.pairs = neighbour_pairs_touching(pos, self.L, cut, self.lo, self.hi)
             self.pairs_i = np.ascontiguousarray(self.pairs[:, 0])

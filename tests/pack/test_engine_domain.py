@@ -257,11 +257,12 @@ def test_every_rebuild_lists_every_pair_within_its_reach(d, poly):
     """The rebuilds that search the last ghost plan's rows again (no hand-over, no halo
     exchange: SlabEngine._search) and those that plan anew both list, over all ranks, exactly
     the pairs closer than their own reach (d_i + d_j) / 2 + skin at the rebuild's positions (a
-    k-d tree over all particles: none missing, none beyond it), through many rebuilds of a damped run from a random start
-    in which particles cross slab and periodic boundaries: two halves of a start stream along
-    axis 0 at +-0.5 through each other at the plane x_0 = L / 2 (on two ranks a slab boundary)
-    and apart at x_0 = 0, ballistically (eps = 0: no forces), so that the drift since a plan is
-    the bound the engine keeps (a bound twice as loose fails here on three ranks)."""
+    k-d tree over all particles: none missing, none beyond it), through many rebuilds of a
+    damped run from a random start in which particles cross slab and periodic boundaries: two
+    halves of a start stream along axis 0 at +-0.5 through each other at the plane x_0 = L / 2
+    (on two ranks a slab boundary) and apart at x_0 = 0, ballistically (eps = 0: no forces), so
+    that the drift since a plan is the bound the engine keeps (a bound twice as loose fails
+    here on three ranks)."""
     from scipy.spatial import cKDTree
 
     pack = random_packing(d, 1500, 0.86 if d == 2 else 0.66, 2.0, poly, 1.4,
