@@ -62,10 +62,12 @@ TAG = 7103  # the point-to-point messages of the ghosts' forces
 # rows and ghosts again: no hand-over, no halo exchange, no collective (``rebuild``)
 HALO_MARGIN = 2.2
 # load balance by measured work: every BALANCE_EVERY steps (0: never) the ranks compare the time
-# their force kernels and searches took (one allgather of two numbers); when the busiest took
-# over BALANCE_TOL times the mean, the next ghost plan moves the slab bounds so that each rank
-# holds a share of the particles proportional to its measured speed (a slower or busier core, a
-# denser slab).  The files do not depend on it: only the decomposition changes.
+# their force kernels and searches took with the work they did (one allgather of two numbers);
+# when the busiest took over BALANCE_TOL times the mean, the next ghost plan moves the slab bounds
+# so that each rank holds a share of the particles proportional to its measured speed (a slower
+# or busier core, a denser slab).  Shorter intervals follow a core that slows down for seconds
+# more closely, but the hand-overs they cause cost what they save (docs/results/pack-ranks.md,
+# "Tried and not kept").  The files do not depend on it: only the decomposition changes.
 BALANCE_EVERY = 200
 BALANCE_TOL = 1.02
 
@@ -112,8 +114,10 @@ class SlabEngine:
         self.drift = 0.0
         self.search = None  # what a search-only rebuild needs (``_plan``)
         # each rank's share of the particles (None: equal), the seconds of kernel and search
-        # work since the last comparison, and whether the next rebuild must plan anew for it
-        self.shares, self.busy, self.n_steps, self.replan = None, 0.0, 0, False
+        # work since the last comparison and the owned particles summed over its steps (the work
+        # done: the slabs may have changed in between), and whether the next rebuild must plan
+        # anew for it
+        self.shares, self.busy, self.work, self.n_steps, self.replan = None, 0.0, 0, 0, False
         self.n_balances = 0  # the comparisons that changed the shares
         self.n_checks = 0  # the steps whose list the bound could not keep, decided by _disp2
         self.acc = np.zeros(kernels.FIRE_ACC, dtype=np.int64)  # the step's sums (exact)
@@ -390,6 +394,7 @@ class SlabEngine:
             if disp2 >= (0.5 * self.skin) ** 2:
                 self.rebuild(moved=float(np.sqrt(disp2)))
             self._call(forces, dt, reset, back, mix_v, mix_f)
+        self.work += self.n_own
         return self._exchange(energy)
 
     def _disp2(self):
@@ -413,13 +418,15 @@ class SlabEngine:
 
     def weigh(self):
         """Compare the ranks' work since the last comparison (collective: an allgather of each
-        rank's busy seconds and particles); when the busiest rank took over BALANCE_TOL times
-        the mean, the shares become proportional to each rank's particles per busy second
+        rank's busy seconds and work, its owned particles summed over the steps since -- or its
+        particles, if no step was taken); when the busiest rank took over BALANCE_TOL times
+        the mean, the shares become proportional to each rank's work per busy second
         (within a factor 2 of equal ones), for the next rebuild to plan with.  Every rank
         decides on the same gathered numbers."""
         both = np.empty((self.size, 2))
-        self.comm.Allgather(np.array([self.busy, float(self.n_own)]), both)
-        self.busy = 0.0
+        work = self.work if self.work > 0 else self.n_own
+        self.comm.Allgather(np.array([self.busy, float(work)]), both)
+        self.busy, self.work = 0.0, 0
         busy, n = both[:, 0], both[:, 1]
         if busy.min() <= 0.0 or n.min() <= 0.0 or busy.max() <= BALANCE_TOL * busy.mean():
             return

@@ -338,6 +338,32 @@ def test_search_points_are_the_plans_points_moved_and_folded(monkeypatch, numpy_
         kernels.reset()
 
 
+def test_balance_weighs_the_work_done_since_the_last_comparison(monkeypatch):
+    """SlabEngine.weigh compares speeds as work per busy second, the work being the owned
+    particles summed over the steps since the last comparison (a slab that changed in between
+    counts with the particles it held then): over the ranks that work is N per step exactly; a
+    rank r reporting (r + 1) ns per particle-step gets the share 1 / (r + 1) of the speeds, and
+    the comparison starts a new window."""
+    from parjam.pack import engine as engine_module
+
+    monkeypatch.setattr(engine_module, "BALANCE_EVERY", 0)  # no comparison of real timings
+    pack = random_packing(3, 900, 0.70, 2.0, "mono", 1.4, np.random.default_rng(11))
+    eng = engine(pack)
+    s = eng.start()
+    eng.work = 0
+    for _ in range(37):
+        s = eng.step(0.05, False, 0.95, 0.02, s)
+    if COMM.size == 1:  # one rank has nothing to balance: its step counts nothing
+        assert eng.work == 0 and eng.shares is None
+        return
+    assert COMM.allreduce(eng.work) == 37 * pack.n
+    eng.busy = (COMM.rank + 1.0) * eng.work * 1e-9
+    eng.weigh()
+    assert eng.work == 0 and eng.busy == 0.0
+    speed = np.array(COMM.allgather(1.0 / (COMM.rank + 1.0)))
+    np.testing.assert_allclose(eng.shares, speed / speed.sum(), rtol=1e-12)
+
+
 def test_slab_shares_follow_the_measured_work_and_change_no_bit(monkeypatch):
     """Load balance by measured work (SlabEngine.weigh): when rank r reports r + 1 busy
     seconds for its (equal) share of particles, the next ghost plan gives the ranks particles in
