@@ -21,7 +21,11 @@ average before and after.
 
 ``--halo-margin 1 2.2 4`` runs this tree with those ghost margins of the slab engine (in skins:
 the halo's reach beyond the cutoff, which sets how many rebuilds search the same ghosts again
-before a new ghost plan) side by side, as trees ``new_m1``, ``new_m2.2``, ``new_m4``.
+before a new ghost plan) side by side, as trees ``new_m1``, ``new_m2.2``, ``new_m4``;
+``--balance-every 200 50`` likewise compares intervals of the engine's load balance (FIRE steps
+between two comparisons of the ranks' measured work), as trees ``new_b200``, ``new_b50``.
+``--co-tenant 2 1 0.4`` runs every measurement beside a job that takes 40 % of one core for 2 s,
+idles 1 s, then does the same on the other core: the slowing cores of a shared machine, on purpose.
 
 ``--warm 0 --steps 1000000 --ftol 1e-13`` times a whole quench instead, from the random start
 to max|F| < ftol: the per-step cost a user pays over a minimisation, early steps that rebuild the
@@ -63,6 +67,8 @@ def worker(args):
     n = args.n[0]
     if args.halo_margin:
         engine.HALO_MARGIN = args.halo_margin[0]
+    if args.balance_every:
+        engine.BALANCE_EVERY = args.balance_every[0]
     pack = random_packing(args.dim, n, args.phi, 2.0, args.dispersity, 1.4,
                           np.random.default_rng(args.seed))
     skin = None if args.skin is None else args.skin * float(np.min(pack.diam))
@@ -79,6 +85,13 @@ def worker(args):
     counts0 = {n: logevents.event(n).getPerfInfo()["count"] for n in names}
     mpi.Barrier()
     t0, c0 = time.perf_counter(), time.process_time()
+    eng, stop = {}, ff.stop_engine
+
+    def stop_counting():  # the engine's load-balance counts, before fire drops it
+        eng.update(balances=ff.engine.n_balances, plans=ff.engine.n_plans)
+        stop()
+
+    ff.stop_engine = stop_counting
     res = fire(ff, args.ftol, params=FireParams(max_steps=args.steps))
     mpi.Barrier()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -95,7 +108,8 @@ def worker(args):
                "cpu_ms_per_step": 1e3 * max(r["cpu"] for r in per_rank) / steps,
                "events_ms_per_step": {k: 1e3 * max(r["events"][k] for r in per_rank) / steps
                                       for k in EVENTS},
-               "event_counts": cnt,
+               "event_counts": cnt, "balances": eng.get("balances"),
+               "plans": eng.get("plans"),
                "kernel_imbalance": max(kern) / (sum(kern) / len(kern)) if sum(kern) else 1.0,
                "energy": res.energy, "tree": os.path.dirname(os.path.dirname(
                    os.path.abspath(logevents.__file__)))}
@@ -129,6 +143,22 @@ def steady(args, ff, mpi, n):
     ff.destroy()
 
 
+def co_tenant(on, off, duty):
+    """--co-tenant: another job sharing the machine, in turn on each core: ``on`` seconds busy
+    ``duty`` of every 100 ms there, then ``off`` seconds idle (runs until killed)."""
+    cores = sorted(os.sched_getaffinity(0))
+    while True:
+        for core in cores:
+            os.sched_setaffinity(0, {core})
+            end = time.time() + on
+            while time.time() < end:
+                t = time.time()
+                while time.time() - t < duty * 0.1:
+                    pass
+                time.sleep((1.0 - duty) * 0.1)
+            time.sleep(off)
+
+
 def old_tree(rev):
     """A directory holding ``rev`` of this repository (or the path itself)."""
     if os.path.isdir(rev):
@@ -140,7 +170,7 @@ def old_tree(rev):
     return dest
 
 
-def run_one(tree, ranks, args, n, margin=None):
+def run_one(tree, ranks, args, n, knobs):
     mpirun = os.environ.get("PARJAM_MPIRUN", "mpirun --oversubscribe").split()
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--n", str(n),
            "--dim", str(args.dim), "--phi", str(args.phi), "--steps", str(args.steps),
@@ -149,8 +179,8 @@ def run_one(tree, ranks, args, n, margin=None):
     cmd += ["--steady"] if args.steady else []
     if args.skin is not None:
         cmd += ["--skin", str(args.skin)]
-    if margin is not None:
-        cmd += ["--halo-margin", repr(margin)]
+    for flag, value in knobs.items():  # this variant's engine settings
+        cmd += [flag, repr(value)]
     if ranks > 1:
         cmd = mpirun + ["-n", str(ranks)] + cmd
     env = dict(os.environ, PYTHONPATH=tree, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
@@ -192,6 +222,16 @@ def main():
                     help="compare these ghost margins of the slab engine (in skins; "
                          "parjam.pack.engine.HALO_MARGIN, default 2.2) side by side, as trees "
                          "'new_m<M>'")
+    ap.add_argument("--balance-every", type=int, nargs="+", default=None,
+                    help="compare these intervals of the slab engine's load balance (FIRE steps "
+                         "between comparisons of the ranks' measured work; "
+                         "parjam.pack.engine.BALANCE_EVERY) side by side, as trees 'new_b<K>'")
+    ap.add_argument("--co-tenant", type=float, nargs=3, default=None,
+                    metavar=("ON", "OFF", "DUTY"),
+                    help="run the measurements beside a job that takes DUTY of one core for ON "
+                         "seconds, idles OFF seconds, then does the same on the next core (a "
+                         "shared machine's slowing cores, on purpose)")
+    ap.add_argument("--co-tenant-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--steady", action="store_true",
                     help="time each step alone at a fixed dt and report its 10th percentile "
                          "(the steps no other job interrupted) instead of FIRE's mean")
@@ -199,13 +239,41 @@ def main():
     if args.worker:
         worker(args)
         return
+    if args.co_tenant_worker:
+        co_tenant(*args.co_tenant)
+        return
+    if args.co_tenant and not (args.co_tenant[0] > 0 and args.co_tenant[1] >= 0
+                               and 0 < args.co_tenant[2] <= 1):
+        sys.exit("bench_pack_ranks: --co-tenant takes ON > 0 and OFF >= 0 seconds, 0 < DUTY <= 1")
     if args.halo_margin and any(not 0.0 <= m < 100.0 for m in args.halo_margin):
         sys.exit("bench_pack_ranks: --halo-margin takes margins in [0, 100) skins")
-    # label -> (tree, ghost margin or None for the tree's own)
-    trees = ({f"new_m{m:g}": (ROOT, m) for m in args.halo_margin} if args.halo_margin
-             else {"new": (ROOT, None)})
+    if args.balance_every and any(k < 0 for k in args.balance_every):
+        sys.exit("bench_pack_ranks: --balance-every takes step counts >= 0 (0: never)")
+    # label -> (tree, the engine settings of this variant: none for the tree's own)
+    trees = {}
+    for m in args.halo_margin or []:
+        trees[f"new_m{m:g}"] = (ROOT, {"--halo-margin": m})
+    for k in args.balance_every or []:
+        trees[f"new_b{k}"] = (ROOT, {"--balance-every": k})
+    if not trees:
+        trees["new"] = (ROOT, {})
     if args.old:
-        trees["old"] = (old_tree(args.old), None)
+        trees["old"] = (old_tree(args.old), {})
+    tenant = None
+    if args.co_tenant:
+        tenant = subprocess.Popen([sys.executable, os.path.abspath(__file__), "--co-tenant-worker",
+                                   "--co-tenant", *map(repr, args.co_tenant)])
+    try:
+        runs, load = measure(args, trees)
+    finally:
+        if tenant is not None:
+            tenant.kill()
+            tenant.wait()
+    report(args, trees, runs, load)
+
+
+def measure(args, trees):
+    """Every (tree, ranks) run of every N and repeat, rotated; the runs and the load averages."""
     runs = []
     load = [os.getloadavg()]
     configs = [(t, p) for t in trees for p in args.ranks]
@@ -213,15 +281,20 @@ def main():
         for rep in range(args.repeat):
             k = rep % len(configs)
             for tree, p in configs[k:] + configs[:k]:
-                path, margin = trees[tree]
-                r = run_one(path, p, args, n, margin)
+                path, knobs = trees[tree]
+                r = run_one(path, p, args, n, knobs)
                 r.update(tree=tree, repeat=rep, load=os.getloadavg()[0])
                 runs.append(r)
                 print(f"N = {n} {tree:>3} P = {p}: {r['ms_per_step']:.3f} ms/step, "
                       f"{r['steps']} steps, {r.get('event_counts', {}).get('rebuild', '-')} "
-                      "rebuilds "
+                      f"rebuilds, {r.get('plans', '-')} plans, {r.get('balances', '-')} balances "
                       f"(cpu {r['cpu_ms_per_step']:.3f}, load {r['load']:.1f})", flush=True)
     load.append(os.getloadavg())
+    return runs, load
+
+
+def report(args, trees, runs, load):
+    """The table of medians and speed-ups, and the JSON file."""
     summary = []
     for n in args.n:
         row = {"n": n}
