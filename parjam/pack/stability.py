@@ -30,9 +30,9 @@ thousands of Lanczos steps a state near jamming needs (3D N = 4096 at p = 1.4e-8
 
 For an unstable state, ``softest_direction`` returns the eigenvector of the lowest
 non-translational eigenvalue: the Lanczos test's witness (its Ritz vector, converged to
-``-stability_lanczos_rtol``), or, after an exact count, SLEPc Krylov-Schur with shift-and-invert
-at a target just below it, found from inertias (options prefix ``stability_``).  The packing
-protocol (parjam.pack.packing) follows it out of the saddle before minimising again.
+``-stability_lanczos_rtol``), or, after an exact count, the Lanczos test run on until its lowest
+Ritz pair has converged.  The packing protocol (parjam.pack.packing) follows it out of the
+saddle before minimising again.
 
 Everything is distributed: the state is a parjam.pack.jamnet.JamNetwork (each rank its
 slab of particles and the half-edges of their contacts), D is assembled from those half-edges
@@ -41,8 +41,11 @@ direction stays a distributed vector mapped back onto the owned particles, and t
 searches move the owned particles and sum the energies of their contacts (one allreduce per
 trial).  On one rank the matrix, its norm and every energy are the serial ones bitwise (the
 half-edges come in the serial order, parjam.pack.jamnet), so the protocol takes the same path.
-The Lanczos start vector depends on the particle ids only, so its verdicts do not depend on the
-number of ranks (its sums do, to round-off).
+The Lanczos test is the same bits on any number of ranks (its start vector depends on the
+particle ids only, its product sums each row in an order of ids, parjam.vib.rowproduct, and its
+sums are exact), and so are the escapes' energies (exact sums): a member shared by P ranks
+leaves a saddle as it does on one.  The exact inertia's count is an integer, the same unless an
+eigenvalue lies within round-off of -s.
 """
 
 from dataclasses import dataclass, field
@@ -52,9 +55,9 @@ import numpy as np
 from parjam import env
 from parjam.errors import ParjamError
 from parjam.logevents import STABILITY_INERTIA, STABILITY_LANCZOS, event
-from parjam.net import potential
+from parjam.net import exactsum, potential
 from parjam.pack import jamnet
-from parjam.vib import factor, hessian, lowest
+from parjam.vib import factor, hessian, lowest, rowproduct
 from parjam.net.active import max_op, min_op
 from parjam.net.system import pair_separation, wrap
 
@@ -141,6 +144,12 @@ class ActiveHessian:
         return hessian.assemble(comm, self.n, self.d, e.i, e.j, self.blocks, shift,
                                 rows=(e.lo, e.hi))
 
+    def product(self, comm):
+        """Its rank-independent product v -> D v (parjam.vib.rowproduct; destroy it)."""
+        e = self.edges
+        return rowproduct.HalfEdgeProduct(comm, self.n, self.d, e.lo, e.hi, e.i, e.j,
+                                          self.blocks)
+
 
 def active_hessian(net):
     """The ActiveHessian of a JamNetwork (collective: one allreduce for the norm)."""
@@ -219,32 +228,29 @@ def check(comm, net, settings=None):
 
 def lanczos_test(comm, H, s, settings=None, want_vector=False):
     """parjam.vib.lowest's test of the ActiveHessian ``H`` against -s, from the start vector of
-    its particles' ids (collective)."""
+    its particles' ids, with its rank-independent product (collective)."""
     with event(STABILITY_LANCZOS):
-        A = H.matrix(comm)  # assembled: no setFromOptions (a -mat_type would empty it)
+        op = H.product(comm)
         try:
-            A.setOptionsPrefix(PREFIX + lowest.OPTIONS)
             st = settings or lowest.Settings.from_options(PREFIX)
             start = lowest.start_rows(H.edges.ids, H.d, st.seed)
-            return lowest.lowest_test(A, H.d, s, start, st, want_vector=want_vector)
+            return lowest.lowest_test(op, H.d, s, start, st, want_vector=want_vector)
         finally:
-            A.destroy()
+            op.destroy()
 
 
 def softest_direction(comm, net, curvature):
     """Displacement of the owned particles (rows of ``net.state``) along the lowest
     non-translational eigenvector of the active Hessian, zero on rattlers, scaled to a largest
     particle displacement of 1 over all ranks, and its eigenvalue; (None, nan) if none is
-    found.  After a Lanczos check its witness where that has converged to an eigenvector, else
-    the lowest Ritz vector of a Lanczos run that goes on until it has; after an exact count
-    ``exact_softest``."""
+    found.  The Lanczos check's witness where that has converged to an eigenvector, else the
+    lowest Ritz vector of a Lanczos run that goes on until it has (also after an exact count):
+    the same bits on any number of ranks, so the escape from a saddle is too."""
     cfg = Settings.from_options()
-    if curvature.method != "lanczos":
-        vec, lam = exact_softest(comm, net, curvature)
-    elif curvature.mode is not None and curvature.mode_residual <= max(
+    if curvature.mode is not None and curvature.mode_residual <= max(
             cfg.lanczos.rtol * abs(curvature.lowest), lowest.FLOOR * curvature.shift):
         vec, lam = curvature.mode, curvature.lowest
-    else:  # the witness is not yet an eigenvector: converge the lowest Ritz pair
+    else:  # the witness is not yet an eigenvector, or there is none: converge the lowest pair
         res = lanczos_test(comm, active_hessian(net), curvature.shift, cfg.lanczos,
                            want_vector=True)
         vec, lam = res.vector, res.lowest
@@ -255,63 +261,6 @@ def softest_direction(comm, net, curvature):
     norms = np.sqrt(np.einsum("ij,ij->i", out, out))
     top = net.state.comm.allreduce(float(norms.max()) if len(norms) else 0.0, op=max_op())
     return out / top, lam
-
-
-def exact_softest(comm, net, curvature):
-    """The lowest non-translational eigenpair by shift-and-invert (after an exact count): this
-    rank's rows of the vector and the eigenvalue, or (None, nan).  The target lies below the
-    lowest eigenvalue (from inertias at -s, -10 s, -100 s ...), so the eigenvalue nearest it is
-    the lowest."""
-    H = active_hessian(net)
-    s = curvature.shift
-    target = -s
-    if curvature.n_negative > 0:
-        target = -10.0 * s
-        while count_below(comm, H, target) > 0 and target > -1e6 * max(H.norm, 1.0):
-            target *= 10.0
-    return nearest_mode(comm, H, target)
-
-
-def nearest_mode(comm, H, target):
-    """Eigenpair of the active Hessian nearest ``target``, translations deflated: this rank's
-    rows [lo, hi) of the eigenvector (a copy) and the eigenvalue."""
-    SLEPc = env.slepc()
-    A = H.matrix(comm)
-    deflation = []
-    for a in range(H.d):
-        v = A.createVecRight()
-        arr = v.getArray()
-        arr[:] = 0.0
-        arr.reshape(-1, H.d)[:, a] = 1.0 / np.sqrt(H.n)
-        deflation.append(v)
-    eps = SLEPc.EPS().create(comm)
-    try:
-        eps.setOperators(A)
-        eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
-        eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
-        eps.setDimensions(nev=1)
-        eps.setTarget(target)
-        eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
-        eps.setTolerances(tol=1e-8, max_it=500)
-        eps.setDeflationSpace(deflation)
-        st = eps.getST()
-        st.setType("sinvert")
-        factor.direct_cholesky(st.getKSP(), fallback="lu")
-        eps.setOptionsPrefix(PREFIX)
-        eps.setFromOptions()
-        eps.solve()
-        if eps.getConverged() < 1:
-            return None, np.nan
-        xr = A.createVecRight()
-        lam = eps.getEigenpair(0, xr).real
-        vec = np.array(xr.array_r)
-        xr.destroy()
-        return vec, float(lam)
-    finally:
-        eps.destroy()
-        for v in deflation:
-            v.destroy()
-        A.destroy()
 
 
 def moved(state, direction, t):
@@ -375,10 +324,11 @@ class LineTrials:
         return edges.subset(once), halo, f["base"]
 
     def energy(self, t):
-        """Total energy at displacement t (each contact once, summed over the ranks)."""
+        """Total energy at displacement t (each contact once, an exact sum over the ranks:
+        the same bits on any number of ranks)."""
         c, _, _ = self._contacts(t)
-        e = potential.energy(c.r, c.sigma, self.alpha, self.eps).sum()
-        return float(self.state.comm.allreduce(e))
+        return exactsum.fsum(self.state.comm, potential.energy(c.r, c.sigma, self.alpha,
+                                                               self.eps))
 
     def new_contact(self, t):
         """Whether some contact at displacement t was not one at t = 0 (the same separation

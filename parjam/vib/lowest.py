@@ -5,7 +5,7 @@ without a factorisation.
 The matrix A is a dynamical matrix of Eq. (1) on N' particles (blocks of d rows per particle,
 distributed by block rows), whose d uniform translations T are exact zero modes.  The test runs
 the Lanczos recurrence of A on the complement of T (every product projected off T, one
-allreduce of d numbers) from a pseudo-random start, without reorthogonalisation: three vectors of
+exact sum of d numbers) from a pseudo-random start, without reorthogonalisation: three vectors of
 this rank's rows, plus a fourth to rebuild a Ritz vector.  After k steps it holds the tridiagonal
 T_k (alpha_1..alpha_k, beta_1..beta_k, beta_k the residual norm) and decides:
 
@@ -38,7 +38,11 @@ T_k (alpha_1..alpha_k, beta_1..beta_k, beta_k the residual norm) and decides:
 
 The start vector is a function of the particles' global ids only (a counter-based hash, Box-
 Muller), the same on any number of ranks and independent of the positions; the probability is
-over that draw.  The bound is an exact-arithmetic statement; in floating point the recurrence
+over that draw.  Every sum of the recurrence (the projections, alpha_j, beta_j, the Rayleigh
+quotient) is exact (parjam.net.exactsum) and the product is taken in an order of global ids
+(parjam.vib.rowproduct), so the steps, the verdict and the vector are the same bits on any
+number of ranks: a packing that leaves a saddle along that vector does so on 1 or P ranks
+alike.  The bound is an exact-arithmetic statement; in floating point the recurrence
 loses orthogonality, which only repeats converged Ritz values (Paige; Greenbaum, Linear Algebra
 Appl. 113, 7 (1989)) and does not weaken the extreme ones.
 
@@ -52,6 +56,7 @@ import numpy as np
 
 from parjam import env
 from parjam.errors import ParjamError
+from parjam.net import exactsum
 
 WITNESS_MARGIN = 2.0  # "below" needs a Rayleigh quotient <= -2 s: s of margin for its round-off
 DELTA = 1e-10  # probability bound of a missed eigenvalue below -s
@@ -127,70 +132,47 @@ def start_rows(ids, d, seed):
 
 
 class _Recurrence:
-    """The projected Lanczos recurrence on this rank's rows (see the module doc).  The three
-    Vecs' local arrays are views kept with them, so a step is one MatMult, a few numpy updates
-    and two allreduces (d + 1 numbers, then one)."""
+    """The projected Lanczos recurrence on this rank's rows (see the module doc): three numpy
+    vectors, and per step one product with the operator and two exact sums over the ranks
+    (parjam.net.exactsum: d + 1 numbers, then one), so every number it makes is the same bits
+    on any number of ranks when the product is (parjam.vib.rowproduct)."""
 
-    def __init__(self, A, d, start):
-        from mpi4py import MPI
-
-        self.A, self.d = A, d
-        self.mpi = A.getComm().tompi4py()
-        self.sum = MPI.SUM
-        self.n_part = A.getSize()[0] // d
-        self.loc, self.glob = np.zeros(d + 1), np.zeros(d + 1)
-        self.one, self.one_glob = np.zeros(1), np.zeros(1)
-        vecs = [A.createVecRight() for _ in range(3)]
-        self.vecs = vecs  # v_j, scratch, v_{j-1}
-        self.arrs = [x.getArray() for x in vecs]
-        v = self.arrs[0]
-        v[:] = np.asarray(start, dtype=np.float64).ravel()
+    def __init__(self, op, d, start):
+        self.op, self.d = op, d
+        self.mpi = op.mpi
+        self.n_part = op.n
+        v = np.array(start, dtype=np.float64).reshape(-1)
         self.project(v)
         v /= self.norm(v)
-        self.arrs[2][:] = 0.0
+        self.v, self.p = v, np.zeros_like(v)
         self.beta = 0.0
-
-    @property
-    def v(self):
-        return self.arrs[0]
 
     def project(self, arr):
         """arr <- arr - T T^T arr (in place)."""
         cols = arr.reshape(-1, self.d)
-        tot = np.zeros(self.d)
-        self.mpi.Allreduce(cols.sum(axis=0), tot, op=self.sum)
-        cols -= tot / self.n_part
+        tot = exactsum.totals(self.mpi, *(cols[:, a] for a in range(self.d)))
+        cols -= np.array(tot) / self.n_part
 
     def norm(self, arr):
-        self.one[0] = arr @ arr
-        self.mpi.Allreduce(self.one, self.one_glob, op=self.sum)
-        return float(np.sqrt(self.one_glob[0]))
+        return float(np.sqrt(exactsum.fsum(self.mpi, arr * arr)))
 
     def step(self):
         """One step: returns (alpha_j, beta_j) and moves on to v_{j+1}."""
-        vv, wv, pv = self.vecs
-        v, w, p = self.arrs
-        self.A.mult(vv, wv)
+        v = self.v
+        w = self.op.apply(v)
         cols = w.reshape(-1, self.d)
-        self.loc[:self.d] = cols.sum(axis=0)
-        self.loc[self.d] = v @ w
-        self.mpi.Allreduce(self.loc, self.glob, op=self.sum)
-        cols -= self.glob[:self.d] / self.n_part  # P A v; v is off T, so v.(P A v) = v.(A v)
-        alpha = float(self.glob[self.d])
+        sums = exactsum.totals(self.mpi, *(cols[:, a] for a in range(self.d)), v * w)
+        cols -= np.array(sums[:self.d]) / self.n_part  # P A v; v is off T: v.(P A v) = v.(A v)
+        alpha = float(sums[self.d])
         w -= alpha * v
         if self.beta:
-            w -= self.beta * p
+            w -= self.beta * self.p
         beta = self.norm(w)
         if beta > 0.0:
             w *= 1.0 / beta
-        self.vecs = [wv, pv, vv]  # v_{j+1}, scratch, v_j
-        self.arrs = [w, p, v]
+        self.v, self.p = w, v
         self.beta = beta
         return alpha, beta
-
-    def destroy(self):
-        for x in self.vecs:
-            x.destroy()
 
 
 def _lowest_pair(alphas, betas):
@@ -231,133 +213,117 @@ def _distinct_below(alphas, betas, level, s):
     return count
 
 
-def _rebuild(A, d, start, y):
-    """The Ritz vector sum_i y_i v_i by a second pass of the same recurrence (a new Vec)."""
-    rec = _Recurrence(A, d, start)
-    x = A.createVecRight()
-    try:
-        xa = x.getArray()
-        xa[:] = 0.0
-        for i in range(len(y)):
-            xa += y[i] * rec.v
-            if i + 1 < len(y):
-                rec.step()
-        rec.project(xa)
-    except BaseException:
-        x.destroy()
-        raise
-    finally:
-        rec.destroy()
+def _rebuild(op, d, start, y):
+    """The Ritz vector sum_i y_i v_i by a second pass of the same recurrence (a new array)."""
+    rec = _Recurrence(op, d, start)
+    x = np.zeros_like(rec.v)
+    for i in range(len(y)):
+        x += y[i] * rec.v
+        if i + 1 < len(y):
+            rec.step()
+    rec.project(x)
     return x
 
 
-def rayleigh(A, x, d):
-    """(x^T A x / x^T x, ||A x - rho x|| / ||x||) with A x projected off the translations."""
-    mpi = A.getComm().tompi4py()
-    ax = x.duplicate()
-    try:
-        A.mult(x, ax)
-        xa, aa = x.getArray(), ax.getArray()
-        n_part = A.getSize()[0] // d
-        tot = mpi.allreduce(aa.reshape(-1, d).sum(axis=0))
-        aa.reshape(-1, d)[:] -= tot / n_part
-        xx, xax = mpi.allreduce(np.array([xa @ xa, xa @ aa]))
-        rho = float(xax / xx)
-        r = aa - rho * xa
-        res = float(np.sqrt(mpi.allreduce(float(r @ r)) / xx))
-    finally:
-        ax.destroy()
+def rayleigh(op, x, d):
+    """(x^T A x / x^T x, ||A x - rho x|| / ||x||) with A x projected off the translations
+    (exact sums: the same bits on any number of ranks when the product is)."""
+    mpi = op.mpi
+    aa = op.apply(x)
+    cols = aa.reshape(-1, d)
+    tot = exactsum.totals(mpi, *(cols[:, a] for a in range(d)))
+    cols -= np.array(tot) / op.n
+    xx, xax = exactsum.totals(mpi, x * x, x * aa)
+    rho = float(xax / xx)
+    r = aa - rho * x
+    res = float(np.sqrt(exactsum.fsum(mpi, r * r) / xx))
     return rho, res
 
 
-def lowest_test(A, d, s, start, settings=None, want_vector=False):
-    """Decide whether the symmetric ``A`` (translations deflated) has an eigenvalue below -s
-    (s > 0), from ``start`` (this rank's rows, e.g. ``start_rows``); see the module doc.  The
+def lowest_test(op, d, s, start, settings=None, want_vector=False):
+    """Decide whether the symmetric operator ``op`` (translations deflated) has an eigenvalue
+    below -s (s > 0), from ``start`` (this rank's rows, e.g. ``start_rows``); see the module
+    doc.  ``op`` gives ``apply(v)`` (the product on this rank's rows, a numpy array), ``mpi``
+    (its mpi4py communicator) and ``n`` (the number of particles): e.g.
+    parjam.vib.rowproduct.HalfEdgeProduct.  The
     test stops at its verdict; a BELOW answer comes with its witness (a Ritz vector with a
     quotient below -2 s, not necessarily an eigenvector).  With ``want_vector`` the recurrence
     goes on until the lowest Ritz pair has converged (residual bound RTOL |theta|, or at the
     round-off floor) and returns that vector with either answer: the direction a packing leaves
     a saddle along.  Collective on A's communicator."""
     st = settings or Settings()
-    n_dim = A.getSize()[0] - d
+    n_dim = op.n * d - d
     log_sphere = 0.5 * np.log(2.0 * max(n_dim, 1) / np.pi)
     log_delta = np.log(st.delta)
-    rec = _Recurrence(A, d, start)
+    rec = _Recurrence(op, d, start)
     alphas, betas = [], []
     piv, log_tau, n_neg = 1.0, 0.0, 0
     verdict, why, pair = None, "", None
     band = -WITNESS_MARGIN * s
-    try:
-        for k in range(1, st.max_steps + 1):
-            a, b = rec.step()
-            alphas.append(a)
-            betas.append(b)
-            # pivot k of T_k + s I: the Sturm count of the Ritz values below -s, and log det
-            piv = a + s - (betas[-2] ** 2 / piv if k > 1 else 0.0)
-            if piv == 0.0:
-                piv = -np.finfo(np.float64).eps * (abs(a) + s)
-            n_neg += piv < 0.0
-            log_tau += (np.log(b) if b > 0.0 else -np.inf) - np.log(abs(piv))
-            invariant = b <= 1e-14 * max(abs(a), 1.0)
-            exhausted = invariant or k == st.max_steps
-            due = k % st.check_every == 0 or exhausted
-            if verdict == NOT_BELOW and n_neg > 0:
-                verdict = None  # a Ritz value went below -s after all: decide again
-            if verdict is None:
-                if n_neg == 0:
-                    if log_tau + log_sphere <= log_delta or invariant:
-                        verdict = NOT_BELOW
-                    elif exhausted:
-                        low = _lowest_pair(alphas, betas)
-                        why = (f"step budget of {st.max_steps} exhausted (lowest Ritz value "
-                               f"{low[0]:.3e}, failure bound "
-                               f"{np.exp(min(log_tau + log_sphere, 0.0)):.1e})")
-                        break
-                    else:
-                        continue
-                elif due:
-                    pair = _lowest_pair(alphas, betas)
-                    theta, res = pair[0], pair[1]
-                    if theta + res < band:
-                        verdict = BELOW
-                    elif band <= theta - res and theta + res <= 0.0:
-                        why = (f"lowest Ritz value {theta:.3e} converged inside the round-off "
-                               f"band [{band:.2e}, 0]")
-                        break
-                    elif exhausted:
-                        why = (f"step budget of {st.max_steps} exhausted (lowest Ritz value "
-                               f"{theta:.3e} +- {res:.1e})")
-                        break
-                    else:
-                        continue
+    for k in range(1, st.max_steps + 1):
+        a, b = rec.step()
+        alphas.append(a)
+        betas.append(b)
+        # pivot k of T_k + s I: the Sturm count of the Ritz values below -s, and log det
+        piv = a + s - (betas[-2] ** 2 / piv if k > 1 else 0.0)
+        if piv == 0.0:
+            piv = -np.finfo(np.float64).eps * (abs(a) + s)
+        n_neg += piv < 0.0
+        log_tau += (np.log(b) if b > 0.0 else -np.inf) - np.log(abs(piv))
+        invariant = b <= 1e-14 * max(abs(a), 1.0)
+        exhausted = invariant or k == st.max_steps
+        due = k % st.check_every == 0 or exhausted
+        if verdict == NOT_BELOW and n_neg > 0:
+            verdict = None  # a Ritz value went below -s after all: decide again
+        if verdict is None:
+            if n_neg == 0:
+                if log_tau + log_sphere <= log_delta or invariant:
+                    verdict = NOT_BELOW
+                elif exhausted:
+                    low = _lowest_pair(alphas, betas)
+                    why = (f"step budget of {st.max_steps} exhausted (lowest Ritz value "
+                           f"{low[0]:.3e}, failure bound "
+                           f"{np.exp(min(log_tau + log_sphere, 0.0)):.1e})")
+                    break
                 else:
                     continue
-                if not want_vector:
-                    break
-            if due or exhausted or pair is None or len(pair[2]) != k:
+            elif due:
                 pair = _lowest_pair(alphas, betas)
-                if pair[1] <= max(st.rtol * abs(pair[0]), FLOOR * s) or exhausted:
+                theta, res = pair[0], pair[1]
+                if theta + res < band:
+                    verdict = BELOW
+                elif band <= theta - res and theta + res <= 0.0:
+                    why = (f"lowest Ritz value {theta:.3e} converged inside the round-off "
+                           f"band [{band:.2e}, 0]")
                     break
-        steps = len(alphas)
-        failure = float(np.exp(min(log_tau + log_sphere, 0.0))) if n_neg == 0 else 1.0
-        if verdict is None or (verdict == NOT_BELOW and not want_vector):
-            low = _lowest_pair(alphas, betas)
-            if verdict is None:
-                return LanczosResult(INCONCLUSIVE, steps, low[0], low[1], 0, 1.0, None,
-                                     why or "no decision")
-            return LanczosResult(NOT_BELOW, steps, low[0], low[1], 0, failure)
-    finally:
-        rec.destroy()
+                elif exhausted:
+                    why = (f"step budget of {st.max_steps} exhausted (lowest Ritz value "
+                           f"{theta:.3e} +- {res:.1e})")
+                    break
+                else:
+                    continue
+            else:
+                continue
+            if not want_vector:
+                break
+        if due or exhausted or pair is None or len(pair[2]) != k:
+            pair = _lowest_pair(alphas, betas)
+            if pair[1] <= max(st.rtol * abs(pair[0]), FLOOR * s) or exhausted:
+                break
+    steps = len(alphas)
+    failure = float(np.exp(min(log_tau + log_sphere, 0.0))) if n_neg == 0 else 1.0
+    if verdict != BELOW and not want_vector:
+        low = _lowest_pair(alphas, betas)
+        if verdict is None:
+            return LanczosResult(INCONCLUSIVE, steps, low[0], low[1], 0, 1.0, None,
+                                 why or "no decision")
+        return LanczosResult(NOT_BELOW, steps, low[0], low[1], 0, failure)
     if pair is None or len(pair[2]) != steps:
         pair = _lowest_pair(alphas, betas)
     theta, res, y = pair
-    x = _rebuild(A, d, start, y)
-    try:
-        rho, true_res = rayleigh(A, x, d)
-        xa = x.getArray()
-        vec = xa / np.sqrt(A.getComm().tompi4py().allreduce(float(xa @ xa)))
-    finally:
-        x.destroy()
+    x = _rebuild(op, d, start, y)
+    rho, true_res = rayleigh(op, x, d)
+    vec = x / np.sqrt(exactsum.fsum(op.mpi, x * x))
     if verdict == BELOW:
         if rho > band:
             return LanczosResult(INCONCLUSIVE, steps, rho, true_res, 0, 1.0, None,
@@ -365,4 +331,7 @@ def lowest_test(A, d, s, start, settings=None, want_vector=False):
                                  f"(Ritz value {theta:.3e})")
         return LanczosResult(BELOW, steps, rho, true_res,
                              max(1, _distinct_below(alphas, betas, -s, s)), 1.0, vec)
+    if verdict is None:  # asked for a vector: the lowest Ritz vector all the same
+        return LanczosResult(INCONCLUSIVE, steps, rho, true_res, 0, 1.0, vec,
+                             why or "no decision")
     return LanczosResult(NOT_BELOW, steps, rho, true_res, 0, failure, vec)

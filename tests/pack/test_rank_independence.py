@@ -2,7 +2,8 @@
 however the values are split over ranks; the engine's FIRE sums are exact sums of the
 per-particle terms; FIRE and Newton (both solvers of parjam.pack.newtonsolve) end in the same
 positions, bitwise, on one rank and on all ranks; ``parjam pack`` of one member shared by 1, 2
-and 3 ranks writes the same files, bitwise (a quench in 3D, a bisection and ladder in 2D).  3
+and 3 ranks writes the same files, bitwise (a quench in 3D, a bisection and ladder in 2D, a
+bisection in 2D that escapes saddles).  3
 ranks: the serial pass reruns this file under $PARJAM_MPIRUN -n 3.  Resumes on another number
 of ranks: tests/pack/test_checkpoint.py."""
 
@@ -12,11 +13,13 @@ import os
 import subprocess
 import sys
 
+import h5py
 import numpy as np
 import pytest
 from mpi4py import MPI
 
 from parjam import env
+from parjam.files import h5md
 from parjam.files.h5md import read_packing
 from parjam.net import exactsum
 from parjam.net.system import wrap
@@ -249,6 +252,9 @@ PACKS = {
     "quench-3d": ["--dim", "3", "--n", "48", "--phi", "0.70", "--seed", "5"],
     "bisect-ladder-2d": ["--dim", "2", "--n", "32", "--dispersity", "bi", "--dphi", "1e-3",
                          "--seed", "2"],
+    # 12 saddle escapes (at phi_c and 1e-8): the Lanczos direction and the line energies must
+    # be the same bits on every rank count (before they were not: 1 and 2 ranks differed)
+    "bisect-escapes-2d": ["--dim", "2", "--n", "64", "--dphi", "1e-8", "--seed", "1"],
 }
 
 
@@ -269,6 +275,12 @@ def test_pack_shared_by_1_2_3_ranks_writes_the_same_files(tmp_path, case):
     bitwise equal (the ranks sharing it, a provenance entry, and wall times aside)."""
     names = [_pack(tmp_path / f"on{p}", PACKS[case], p) for p in (1, 2, 3)]
     assert names[0] == names[1] == names[2] and names[0]
+    if "escapes" in case:  # the case is there for its saddles: they must still be met
+        escapes = 0
+        for name in names[0]:
+            with h5py.File(tmp_path / "on1" / name, "r") as f:
+                escapes += int(h5md.observable(f, "escapes"))
+        assert escapes >= 4, escapes
     for p in (2, 3):
         for name in names[0]:
             assert differences(tmp_path / "on1" / name, tmp_path / f"on{p}" / name) == [], \
