@@ -709,6 +709,40 @@ void parjam_gather_rows(int64_t n, int d, const int64_t *idx, const double *src,
         gather_d(d, n, idx, src, dst);
 }
 
+/* out = D v on m rows from nh half-edges (parjam.vib.rowproduct): row rows[e] gets
+ * K_e (v[rows[e]] - vc[pos[e]]), each component summed over b = 0 .. d - 1 from 0, the rows
+ * summed over their half-edges in the given order from 0 -- numpy's zeros, += and bincount,
+ * operation for operation, so the fallback there gives the same bits. */
+static ALWAYS_INLINE void halfedge_d(const int d, int64_t nh, int64_t m, const int64_t *rows,
+                                     const int64_t *pos, const double *K, const double *v,
+                                     const double *vc, double *out)
+{
+    for (int64_t k = 0; k < m * d; k++)
+        out[k] = 0.0;
+    for (int64_t e = 0; e < nh; e++) {
+        const double *vi = v + rows[e] * d, *vj = vc + pos[e] * d, *Ke = K + e * d * d;
+        double dv[3];
+        for (int b = 0; b < d; b++)
+            dv[b] = vi[b] - vj[b];
+        for (int a = 0; a < d; a++) {
+            double w = 0.0;
+            for (int b = 0; b < d; b++)
+                w += Ke[a * d + b] * dv[b];
+            out[rows[e] * d + a] += w;
+        }
+    }
+}
+
+void parjam_halfedge_product(int64_t nh, int d, int64_t m, const int64_t *rows,
+                             const int64_t *pos, const double *K, const double *v,
+                             const double *vc, double *out)
+{
+    if (d == 3)
+        halfedge_d(3, nh, m, rows, pos, K, v, vc, out);
+    else
+        halfedge_d(2, nh, m, rows, pos, K, v, vc, out);
+}
+
 /* A slab search's points at the current positions (the engine's search-only rebuild):
  * out[k] = pos[src[k]] + offset[k], then folded into [0, L) along axes 1 .. d - 1 as
  * parjam_fold_owner folds (axis 0 stays open: the plan placed each point's image there); and,

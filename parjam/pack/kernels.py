@@ -153,6 +153,9 @@ def library():
                                                                            ctypes.c_void_p,
                                                                            ctypes.c_int64,
                                                                            ctypes.c_void_p]
+    hp = lib.parjam_halfedge_product
+    hp.restype = None
+    hp.argtypes = [ctypes.c_int64, ctypes.c_int, ctypes.c_int64, i64, i64, f64, f64, f64, w64]
     fs = lib.parjam_fire_sums
     fs.restype = None
     fs.argtypes = [i64, w64]

@@ -22,7 +22,7 @@ from parjam import env
 from parjam.errors import ParjamError
 from parjam.net import exactsum, network
 from parjam.files.h5md import read_packing
-from parjam.pack import jamnet, stability
+from parjam.pack import jamnet, kernels, stability
 from parjam.vib import hessian, lowest, rowproduct
 from parjam.net.system import wrap
 
@@ -360,6 +360,19 @@ def test_product_is_the_dense_one_and_the_same_bits_on_any_number_of_ranks(name)
     (n_all, s_all, w_all), (n_one, s_one, w_one) = got
     assert n_all == n_one and s_all == s_one
     assert np.array_equal(w_all, w_one)
+    # the compiled kernel and the numpy fallback: the same operations, the same bits
+    net, pcomm = on_self_and_all(pack)[1]
+    H = stability.active_hessian(net)
+    op = H.product(pcomm)
+    try:
+        v = lowest.start_rows(H.edges.ids, H.d, 3).ravel()
+        assert kernels.library() is not None, "the compiled kernels are part of the setup"
+        compiled = op.apply(v)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(kernels, "library", lambda: None)
+            assert np.array_equal(op.apply(v), compiled)
+    finally:
+        op.destroy()
     D, active = dense_active(pack)
     v = lowest.start_rows(active, pack.d, 3).ravel()
     ref = D @ v
