@@ -17,8 +17,10 @@ limit: the recurrence's other work is a few vector updates and sums).
 escape: a saddle made from each stable packing by moving it along its softest mode until a
 contact opens (dense LAPACK: small packings only), checked by the exact inertia; the escape
 direction by the baseline's SLEPc Krylov-Schur with shift-and-invert at a target below the
-lowest eigenvalue (parjam/pack/stability.py at the baseline: ``exact_softest``) against the new
-Lanczos run to convergence (``softest_direction``): wall seconds, and the eigenvalue of each.
+lowest eigenvalue on all ranks (parjam/pack/stability.py at the baseline: ``exact_softest``)
+against the new ``softest_direction``: the same on the first rank with the rows gathered in id
+order (``root_softest``), and, with -stability_auto_max_dof 0, the Lanczos test run on to
+convergence (what larger matrices get): wall seconds, and the eigenvalue of each.
 Every record carries the load average at its start (the machine is shared).
 """
 
@@ -151,10 +153,17 @@ def escape_cmd(args):
             load = os.getloadavg()[0]
             t_old, (_, lam_old) = timed(lambda: old.exact_softest(world, net, cur))
             t_new, (_, lam_new) = timed(lambda: stability.softest_direction(world, net, cur))
+            opts = PETSc.Options()
+            opts["stability_auto_max_dof"] = 0  # the Lanczos vector, as above that size
+            try:
+                t_lz, (_, lam_lz) = timed(lambda: stability.softest_direction(world, net, cur))
+            finally:
+                opts.delValue("stability_auto_max_dof")
             emit(args.out, {"file": os.path.basename(name), "n": pack.n, "d": pack.d,
                             "ranks": COMM.size, "n_negative": cur.n_negative, "repeat": rep,
-                            "load": load, "s_old": t_old, "s_new": t_new,
-                            "lambda_old": lam_old, "lambda_new": lam_new})
+                            "load": load, "s_old": t_old, "s_root": t_new, "s_lanczos": t_lz,
+                            "lambda_old": lam_old, "lambda_root": lam_new,
+                            "lambda_lanczos": lam_lz})
 
 
 def emit(out, rec):

@@ -30,8 +30,10 @@ thousands of Lanczos steps a state near jamming needs (3D N = 4096 at p = 1.4e-8
 
 For an unstable state, ``softest_direction`` returns the eigenvector of the lowest
 non-translational eigenvalue: the Lanczos test's witness (its Ritz vector, converged to
-``-stability_lanczos_rtol``), or, after an exact count, the Lanczos test run on until its lowest
-Ritz pair has converged.  The packing protocol (parjam.pack.packing) follows it out of the
+``-stability_lanczos_rtol``), or, after an exact count, SLEPc Krylov-Schur with shift-and-invert
+at a target just below it, found from inertias, on the first rank with the rows gathered there
+in id order (options prefix ``stability_``; up to ``-stability_auto_max_dof`` rows, above that
+the Lanczos test run on until its lowest Ritz pair has converged).  The packing protocol (parjam.pack.packing) follows it out of the
 saddle before minimising again.
 
 Everything is distributed: the state is a parjam.pack.jamnet.JamNetwork (each rank its
@@ -43,8 +45,9 @@ trial).  On one rank the matrix, its norm and every energy are the serial ones b
 half-edges come in the serial order, parjam.pack.jamnet), so the protocol takes the same path.
 The Lanczos test is the same bits on any number of ranks (its start vector depends on the
 particle ids only, its product sums each row in an order of ids, parjam.vib.rowproduct, and its
-sums are exact), and so are the escapes' energies (exact sums): a member shared by P ranks
-leaves a saddle as it does on one.  The exact inertia's count is an integer, the same unless an
+sums are exact), and so are the first rank's shift-and-invert on the rows gathered in id order
+and the escapes' energies (exact sums): a member shared by P ranks leaves a saddle as it does
+on one.  The exact inertia's count is an integer, the same unless an
 eigenvalue lies within round-off of -s.
 """
 
@@ -243,13 +246,16 @@ def softest_direction(comm, net, curvature):
     """Displacement of the owned particles (rows of ``net.state``) along the lowest
     non-translational eigenvector of the active Hessian, zero on rattlers, scaled to a largest
     particle displacement of 1 over all ranks, and its eigenvalue; (None, nan) if none is
-    found.  The Lanczos check's witness where that has converged to an eigenvector, else the
-    lowest Ritz vector of a Lanczos run that goes on until it has (also after an exact count):
-    the same bits on any number of ranks, so the escape from a saddle is too."""
+    found.  The Lanczos check's witness where that has converged to an eigenvector; else, up to
+    ``-stability_auto_max_dof`` rows, shift-and-invert on the first rank (``root_softest``), and
+    above, the Lanczos test run on until its lowest Ritz pair has converged.  Each is the same
+    bits on any number of ranks, so the escape from a saddle is too."""
     cfg = Settings.from_options()
     if curvature.mode is not None and curvature.mode_residual <= max(
             cfg.lanczos.rtol * abs(curvature.lowest), lowest.FLOOR * curvature.shift):
         vec, lam = curvature.mode, curvature.lowest
+    elif net.n_active * net.d <= cfg.auto_max_dof and env.has_mumps():
+        vec, lam = root_softest(net, curvature)
     else:  # the witness is not yet an eigenvector, or there is none: converge the lowest pair
         res = lanczos_test(comm, active_hessian(net), curvature.shift, cfg.lanczos,
                            want_vector=True)
@@ -261,6 +267,99 @@ def softest_direction(comm, net, curvature):
     norms = np.sqrt(np.einsum("ij,ij->i", out, out))
     top = net.state.comm.allreduce(float(norms.max()) if len(norms) else 0.0, op=max_op())
     return out / top, lam
+
+
+def root_softest(net, curvature):
+    """The lowest non-translational eigenpair of the active Hessian by shift-and-invert on the
+    first rank: this rank's rows of the vector and the eigenvalue, or (None, nan) (collective).
+
+    The rows are gathered there and renumbered by particle id (``root_hessian``), so the first
+    rank holds the same matrix, bit for bit, whatever the number of ranks; inertias of one
+    sequential MUMPS LDL^T at -10 s, -100 s ... put a target below the lowest eigenvalue, and
+    SLEPc Krylov-Schur (sequential, its own start vector) finds the eigenpair nearest it.  All
+    of it is sequential code on the same numbers, so the vector is the same bits on 1 or P
+    ranks (a distributed factorisation's round-off depends on the split).  Its memory is one
+    factor on one rank: ``softest_direction`` takes it up to -stability_auto_max_dof rows."""
+    PETSc = env.petsc()
+    mpi = net.state.comm
+    H = active_hessian(net)
+    got = mpi.gather((H.edges.ids, H.edges.i, H.edges.j, H.blocks), root=0)
+    out = None
+    if mpi.Get_rank() == 0:
+        root, number = root_hessian(H, got)
+        s = curvature.shift
+        target = -s
+        if curvature.n_negative > 0:
+            target = -10.0 * s
+            while count_below(PETSc.COMM_SELF, root, target) > 0 and \
+                    target > -1e6 * max(root.norm, 1.0):
+                target *= 10.0
+        vec, lam = nearest_mode(PETSc.COMM_SELF, root, target)
+        rows = vec.reshape(-1, H.d) if vec is not None else None
+        out = [(None if rows is None else rows[number[ids]], lam) for ids, *_ in got]
+    return mpi.scatter(out, root=0)
+
+
+def root_hessian(H, parts):
+    """The whole active Hessian on one rank, rows numbered by particle id, from every rank's
+    (ids, i, j, blocks) in rank order (active numbers are the ranks' consecutive blocks): an
+    ActiveHessian of rows [0, N'), and the row of each particle id ({id: row} as an array).  A
+    row's half-edges keep their owner's order (partners by id), so its diagonal block is the
+    same sum on any number of ranks."""
+    ids = np.concatenate([p[0] for p in parts])
+    order = np.argsort(ids, kind="stable")
+    renumber = np.empty(len(ids), dtype=np.int64)
+    renumber[order] = np.arange(len(ids))
+    number = np.full(int(ids.max()) + 1 if len(ids) else 0, -1, dtype=np.int64)
+    number[ids] = renumber
+    i = renumber[np.concatenate([p[1] for p in parts])]
+    j = renumber[np.concatenate([p[2] for p in parts])]
+    blocks = np.concatenate([p[3] for p in parts])
+    n, none = len(ids), np.zeros((0, H.d))
+    edges = jamnet.ActiveEdges(n, 0, n, 0, i, j, none, none[:, 0], none[:, 0], ids[order])
+    return ActiveHessian(n, H.d, edges, blocks, H.norm), number
+
+
+def nearest_mode(comm, H, target):
+    """Eigenpair of the active Hessian nearest ``target``, translations deflated: this rank's
+    rows [lo, hi) of the eigenvector (a copy) and the eigenvalue, or (None, nan)."""
+    SLEPc = env.slepc()
+    A = H.matrix(comm)
+    deflation = []
+    for a in range(H.d):
+        v = A.createVecRight()
+        arr = v.getArray()
+        arr[:] = 0.0
+        arr.reshape(-1, H.d)[:, a] = 1.0 / np.sqrt(H.n)
+        deflation.append(v)
+    eps = SLEPc.EPS().create(comm)
+    try:
+        eps.setOperators(A)
+        eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
+        eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
+        eps.setDimensions(nev=1)
+        eps.setTarget(target)
+        eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
+        eps.setTolerances(tol=1e-8, max_it=500)
+        eps.setDeflationSpace(deflation)
+        st = eps.getST()
+        st.setType("sinvert")
+        factor.direct_cholesky(st.getKSP(), fallback="lu")
+        eps.setOptionsPrefix(PREFIX)
+        eps.setFromOptions()
+        eps.solve()
+        if eps.getConverged() < 1:
+            return None, np.nan
+        xr = A.createVecRight()
+        lam = eps.getEigenpair(0, xr).real
+        vec = np.array(xr.array_r)
+        xr.destroy()
+        return vec, float(lam)
+    finally:
+        eps.destroy()
+        for v in deflation:
+            v.destroy()
+        A.destroy()
 
 
 def moved(state, direction, t):

@@ -252,8 +252,9 @@ PACKS = {
     "quench-3d": ["--dim", "3", "--n", "48", "--phi", "0.70", "--seed", "5"],
     "bisect-ladder-2d": ["--dim", "2", "--n", "32", "--dispersity", "bi", "--dphi", "1e-3",
                          "--seed", "2"],
-    # 12 saddle escapes (at phi_c and 1e-8): the Lanczos direction and the line energies must
-    # be the same bits on every rank count (before they were not: 1 and 2 ranks differed)
+    # 23 saddle escapes and 2 compression cycles (at phi_c and 1e-8, which stays a flagged
+    # saddle): the escape directions and the line energies must be the same bits on every rank
+    # count (before, 1 and 2 ranks differed: 23 against 12 escapes)
     "bisect-escapes-2d": ["--dim", "2", "--n", "64", "--dphi", "1e-8", "--seed", "1"],
 }
 

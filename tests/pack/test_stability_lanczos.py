@@ -380,22 +380,31 @@ def test_product_is_the_dense_one_and_the_same_bits_on_any_number_of_ranks(name)
         np.abs(v).max()
 
 
-@pytest.mark.parametrize("settings", [LANCZOS, INERTIA], ids=["lanczos", "inertia"])
-def test_saddle_escape_is_the_same_bits_on_any_number_of_ranks(settings):
+@pytest.mark.parametrize("settings, root", [(LANCZOS, None), (INERTIA, None), (INERTIA, 0)],
+                         ids=["lanczos witness", "inertia, root sinvert", "inertia, lanczos"])
+def test_saddle_escape_is_the_same_bits_on_any_number_of_ranks(settings, root):
     """A saddle (contacts opened along the soft mode): the check's verdict, shift, lowest Ritz
-    value and steps, the escape direction with its eigenvalue (the Lanczos witness, or after an
-    exact count the Lanczos vector converged) and the escape candidates along it, with their
-    energies, are the one-rank ones bit for bit on all ranks."""
+    value and steps, the escape direction with its eigenvalue (the Lanczos witness; after an
+    exact count shift-and-invert on the first rank, or with -stability_auto_max_dof 0 the
+    Lanczos vector converged) and the escape candidates along it, with their energies, are the
+    one-rank ones bit for bit on all ranks."""
     pack = saddle_along_soft_mode(read_packing(os.path.join(DATA, STABLE[0])))
+    opts = env.petsc().Options()
+    if root is not None:
+        opts["stability_auto_max_dof"] = root
     got = []
-    for net, pcomm in on_self_and_all(pack):
-        cur = stability.check(pcomm, net, settings)
-        direction, lam = stability.softest_direction(pcomm, net, cur)
-        cands = stability.escape_candidates(net, direction)
-        trials = stability.LineTrials(net.state, direction, net.alpha, net.eps)
-        energies = [trials.energy(t) for t in cands]
-        got.append(((cur.n_negative, cur.shift, cur.method, cur.steps, lam, cands, energies),
-                    by_id(net, direction)))
+    try:
+        for net, pcomm in on_self_and_all(pack):
+            cur = stability.check(pcomm, net, settings)
+            direction, lam = stability.softest_direction(pcomm, net, cur)
+            cands = stability.escape_candidates(net, direction)
+            trials = stability.LineTrials(net.state, direction, net.alpha, net.eps)
+            energies = [trials.energy(t) for t in cands]
+            got.append(((cur.n_negative, cur.shift, cur.method, cur.steps, lam, cands,
+                         energies), by_id(net, direction)))
+    finally:
+        if root is not None:
+            opts.delValue("stability_auto_max_dof")
     (info_all, dir_all), (info_one, dir_one) = got
     assert info_one[0] >= 1 and info_one[4] < 0.0 and len(info_one[5]) >= 2
     np.testing.assert_equal(info_all, info_one)
