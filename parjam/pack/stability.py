@@ -33,22 +33,22 @@ non-translational eigenvalue: the Lanczos test's witness (its Ritz vector, conve
 ``-stability_lanczos_rtol``), or, after an exact count, SLEPc Krylov-Schur with shift-and-invert
 at a target just below it, found from inertias, on the first rank with the rows gathered there
 in id order (options prefix ``stability_``; up to ``-stability_auto_max_dof`` rows, above that
-the Lanczos test run on until its lowest Ritz pair has converged).  The packing protocol (parjam.pack.packing) follows it out of the
-saddle before minimising again.
+the Lanczos test run on until its lowest Ritz pair has converged).  The packing protocol
+(parjam.pack.packing) follows it out of the saddle before minimising again.
 
 Everything is distributed: the state is a parjam.pack.jamnet.JamNetwork (each rank its
 slab of particles and the half-edges of their contacts), D is assembled from those half-edges
 into block rows [lo, hi) of the active numbering (hessian.assemble(rows=...)), the softest
 direction stays a distributed vector mapped back onto the owned particles, and the escape
-searches move the owned particles and sum the energies of their contacts (one allreduce per
+searches move the owned particles and sum the energies of their contacts (one exact sum per
 trial).  On one rank the matrix, its norm and every energy are the serial ones bitwise (the
 half-edges come in the serial order, parjam.pack.jamnet), so the protocol takes the same path.
 The Lanczos test is the same bits on any number of ranks (its start vector depends on the
 particle ids only, its product sums each row in an order of ids, parjam.vib.rowproduct, and its
 sums are exact), and so are the first rank's shift-and-invert on the rows gathered in id order
 and the escapes' energies (exact sums): a member shared by P ranks leaves a saddle as it does
-on one.  The exact inertia's count is an integer, the same unless an
-eigenvalue lies within round-off of -s.
+on one.  The exact inertia's count is an integer, the same unless an eigenvalue lies within
+round-off of -s.
 """
 
 from dataclasses import dataclass, field
