@@ -42,10 +42,9 @@ from mpi4py import MPI  # noqa: E402
 
 from parjam import env  # noqa: E402
 from parjam.files.h5md import read_packing  # noqa: E402
-from parjam.net import network  # noqa: E402
-from parjam.net.system import wrap  # noqa: E402
 from parjam.pack import jamnet, stability  # noqa: E402
-from parjam.vib import hessian, lowest  # noqa: E402
+from parjam.testing import saddles  # noqa: E402
+from parjam.vib import lowest  # noqa: E402
 
 COMM = MPI.COMM_WORLD
 
@@ -110,42 +109,12 @@ def steps_cmd(args):
                 obj.destroy()
 
 
-def saddle(pack):
-    """The packing moved along its softest mode until the first contact between particles with
-    more than d + 1 contacts opens (dense LAPACK)."""
-    net = network.analyze(pack)
-    c = network.active_contacts(net)
-    blocks = hessian.contact_blocks(c.rij, c.r, c.sigma, pack.alpha, pack.eps, "full")
-    D = hessian.dense_hessian(net.n_active, pack.d, c.i, c.j, blocks)
-    n, d = net.n_active, pack.d
-    Dd = D.reshape(n, d, n, d).copy()
-    for a in range(d):
-        Dd[:, a, :, a] += 1e3 / n
-    _, vec = np.linalg.eigh(Dd.reshape(n * d, -1))
-    v = np.zeros((pack.n, d))
-    v[~net.rattler] = vec[:, 0].reshape(-1, d)
-    cc = net.contacts
-    deg = np.bincount(cc.i, minlength=pack.n) + np.bincount(cc.j, minlength=pack.n)
-    rate = np.einsum("ij,ij->i", v[cc.j] - v[cc.i], cc.rij / cc.r[:, None])
-    overlap = (1.0 - cc.r / cc.sigma) * cc.sigma
-    free = (deg[cc.i] > d + 1) & (deg[cc.j] > d + 1)
-    best = None
-    for sign in (1.0, -1.0):
-        ok = free & (sign * rate > 0)
-        t = np.sort(overlap[ok] / (sign * rate[ok]))
-        if len(t) and (best is None or t[0] < best[0]):
-            best = (t[0], sign)
-    out = pack.copy()
-    out.pos = wrap(pack.pos + best[1] * best[0] * 1.0001 * v, pack.L)
-    return out
-
-
 def escape_cmd(args):
     PETSc = env.petsc()
     old = baseline_module(args.baseline, "parjam/pack/stability.py", "baseline_stability")
     world = PETSc.COMM_WORLD
     for name in args.files:
-        pack = saddle(read_packing(name)) if COMM.rank == 0 else None
+        pack = saddles.along_soft_mode(read_packing(name)) if COMM.rank == 0 else None
         pack = COMM.bcast(pack, root=0)
         net = jamnet.from_packing(COMM, pack)
         cur = stability.check(world, net, stability.Settings("inertia"))

@@ -26,7 +26,7 @@ from parjam.errors import ParjamError
 from parjam.pack.minimize import MinResult
 from parjam.pack.packing import Jammer, make_jammed
 from parjam.pack.protocol import check_tolerances
-from parjam.net.system import wrap
+from parjam.testing import saddles
 
 PETSc = env.petsc()
 DPHIS = [1e-9, 1e-8, 1e-7, 1e-6]
@@ -70,42 +70,12 @@ def _dense_negatives(pack, shift):
     return int(np.sum(np.linalg.eigvalsh(D) < -shift))
 
 
-def saddle_from(pack):
-    """The stable packing displaced along its softest mode until contacts that this mode
-    unloads open, among those whose particles keep d + 1 others (no new rattler), until the
-    network is hypostatic with a floppy mode (Nc = Nc_iso - 2): the stress term of Eq. (1)
-    gives that mode a negative curvature ~ -p, a saddle."""
-    net = network.analyze(pack)
-    D, active = dense_active_hessian(pack)
-    n, d = len(active), pack.d
-    Dd = D.reshape(n, d, n, d).copy()
-    for a in range(d):  # translations moved above the spectrum
-        Dd[:, a, :, a] += 10.0 / n
-    lam, vec = np.linalg.eigh(Dd.reshape(n * d, -1))
-    v = np.zeros((pack.n, pack.d))
-    v[active] = vec[:, 0].reshape(n, d)
-    c = net.contacts
-    deg = np.bincount(c.i, minlength=pack.n) + np.bincount(c.j, minlength=pack.n)
-    rate = np.einsum("ij,ij->i", v[c.j] - v[c.i], c.rij / c.r[:, None])  # d r_ij / dt
-    overlap = (1.0 - c.r / c.sigma) * c.sigma
-    free = (deg[c.i] > pack.d + 1) & (deg[c.j] > pack.d + 1)
-    best = None
-    for sign in (1.0, -1.0):
-        ok = free & (sign * rate > 0)
-        t = np.sort(overlap[ok] / (sign * rate[ok]))
-        if len(t) > 1 and (best is None or t[1] < best[0]):
-            best = (t[1], sign)
-    out = pack.copy()
-    out.pos = wrap(pack.pos + best[1] * best[0] * 1.0001 * v, pack.L)
-    return out
-
-
 def test_saddle_detected_and_relaxed(ladder, world):
     d, (phi_c, packs) = ladder
     stable = packs[1]  # dphi = 1e-8
     s0 = stability.check(world, jamnet.from_packing(world, stable))
     assert s0.stable and s0.n_negative == _dense_negatives(stable, s0.shift) == 0
-    saddle = saddle_from(stable)
+    saddle = saddles.along_soft_mode(stable, opened=2)
     net = network.analyze(saddle)
     assert net.excess < 0
     cur = stability.check(world, jamnet.from_packing(world, saddle))
@@ -133,7 +103,7 @@ def test_unstabilisable_state_is_flagged_not_dropped(ladder, world, monkeypatch)
     """With no escape and no compression cycle allowed, the saddle comes back flagged
     (stable = 0)."""
     d, (phi_c, packs) = ladder
-    saddle = saddle_from(packs[1])
+    saddle = saddles.along_soft_mode(packs[1], opened=2)
     monkeypatch.setattr(packing, "MAX_ESCAPES", 0)
     monkeypatch.setattr(packing, "CYCLE_FACTORS", ())
     jam = Jammer(world, saddle)  # no minimisation: the checks only, on every rank
@@ -230,7 +200,7 @@ def test_compression_cycle_stabilises_where_the_escapes_cannot(ladder, monkeypat
 
     d, (phi_c, packs) = ladder
     stable = packs[1]  # dphi = 1e-8
-    saddle = saddle_from(stable)
+    saddle = saddles.along_soft_mode(stable, opened=2)
     monkeypatch.setattr(packing, "MAX_ESCAPES", 0)
     path = str(tmp_path / "cycle.h5")  # each rank its own (COMM_SELF checkpoints)
     runs = []

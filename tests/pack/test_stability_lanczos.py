@@ -24,7 +24,7 @@ from parjam.net import exactsum, network
 from parjam.files.h5md import read_packing
 from parjam.pack import jamnet, kernels, stability
 from parjam.vib import hessian, lowest, rowproduct
-from parjam.net.system import wrap
+from parjam.testing import saddles
 
 from conftest import DATA, ROOT, run_on_ranks, subprocess_env
 
@@ -60,30 +60,6 @@ def dense_count(pack, s):
     return int(np.sum(lam < -s))
 
 
-def saddle_along_soft_mode(pack):
-    """The packing displaced along its softest mode until the first contact between two
-    particles with more than d + 1 contacts opens (no new rattler)."""
-    net = network.analyze(pack)
-    D, active = dense_active(pack)
-    _, vec = lowest_modes(D, pack.d)
-    v = np.zeros((pack.n, pack.d))
-    v[active] = vec[:, 0].reshape(-1, pack.d)
-    c = net.contacts
-    deg = np.bincount(c.i, minlength=pack.n) + np.bincount(c.j, minlength=pack.n)
-    rate = np.einsum("ij,ij->i", v[c.j] - v[c.i], c.rij / c.r[:, None])
-    overlap = (1.0 - c.r / c.sigma) * c.sigma
-    free = (deg[c.i] > pack.d + 1) & (deg[c.j] > pack.d + 1)
-    best = None
-    for sign in (1.0, -1.0):
-        ok = free & (sign * rate > 0)
-        t = np.sort(overlap[ok] / (sign * rate[ok]))
-        if len(t) and (best is None or t[0] < best[0]):
-            best = (t[0], sign)
-    out = pack.copy()
-    out.pos = wrap(pack.pos + best[1] * best[0] * 1.0001 * v, pack.L)
-    return out
-
-
 @pytest.mark.parametrize("name", STABLE)
 def test_stable_packings_agree_with_the_exact_inertia(name):
     """Stable packings: the Lanczos test says 'no eigenvalue below -s' with a failure bound
@@ -105,7 +81,7 @@ def test_saddle_along_the_soft_mode_is_found_with_its_direction():
     and LAPACK do (counting at least one of their negative eigenvalues), its witness's quotient
     lies between the lowest eigenvalue and -2 s, and the escape direction is the dense lowest
     eigenvector, its eigenvalue to 1e-6."""
-    pack = saddle_along_soft_mode(read_packing(os.path.join(DATA, STABLE[0])))
+    pack = saddles.along_soft_mode(read_packing(os.path.join(DATA, STABLE[0])))
     net = jamnet.from_packing(COMM, pack)
     assert net.excess < 0
     new = stability.check(WORLD, net, LANCZOS)
@@ -388,7 +364,7 @@ def test_saddle_escape_is_the_same_bits_on_any_number_of_ranks(settings, root):
     exact count shift-and-invert on the first rank, or with -stability_auto_max_dof 0 the
     Lanczos vector converged) and the escape candidates along it, with their energies, are the
     one-rank ones bit for bit on all ranks."""
-    pack = saddle_along_soft_mode(read_packing(os.path.join(DATA, STABLE[0])))
+    pack = saddles.along_soft_mode(read_packing(os.path.join(DATA, STABLE[0])))
     opts = env.petsc().Options()
     if root is not None:
         opts["stability_auto_max_dof"] = root
