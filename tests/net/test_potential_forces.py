@@ -130,3 +130,27 @@ def test_compiled_kernel_matches_numpy(alpha):
                                      out_n)
     np.testing.assert_allclose(out_c, out_n, rtol=1e-12, atol=1e-15 * np.abs(out_n).max())
     assert e_c == pytest.approx(e_n, rel=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["full", "relaxed", "stress"])
+def test_contact_blocks_in_chunks_are_the_blocks_of_eq1(kind, monkeypatch):
+    """blocks.contact_blocks, computed CHUNK contacts at a time, gives each contact's
+    V'' n n^T + (V'/r) (I - n n^T) (Eq. 1) to round-off, and the same bits whatever the chunk
+    (one pass over all contacts, or passes that split the list anywhere)."""
+    from parjam.net import blocks as cb
+    rng = np.random.default_rng(5)
+    m, d = 3 * cb.CHUNK + 17, 3
+    rij = rng.normal(size=(m, d))
+    r = np.sqrt((rij * rij).sum(axis=1))
+    sigma = r * rng.uniform(1.001, 1.2, m)
+    got = cb.contact_blocks(rij, r, sigma, 2.5, 1.3, kind)
+    n = rij / r[:, None]
+    k = potential.d2V(r, sigma, 2.5, 1.3) if kind != "stress" else np.zeros(m)
+    t = potential.dV(r, sigma, 2.5, 1.3) / r if kind != "relaxed" else np.zeros(m)
+    for c in (0, 1, cb.CHUNK - 1, cb.CHUNK, m - 1):
+        nn = np.outer(n[c], n[c])
+        want = k[c] * nn + t[c] * (np.eye(d) - nn)
+        np.testing.assert_allclose(got[c], want, rtol=1e-13, atol=1e-13 * abs(want).max())
+    for chunk in (m, 1000, 7):
+        monkeypatch.setattr(cb, "CHUNK", chunk)
+        assert cb.contact_blocks(rij, r, sigma, 2.5, 1.3, kind).tobytes() == got.tobytes()
