@@ -8,7 +8,8 @@
     .venv/bin/python scripts/bench_stability.py check DIR/*.h5 [--ranks 1 2] [--repeats 3]
         --out bench-out/stability-check.jsonl
     .venv/bin/python scripts/bench_stability.py weak --dir DIR [--per-rank 12000]
-        [--ranks 1 2 4 8] [--repeats 3] [--methods lanczos] --out bench-out/stability-weak.jsonl
+        [--ranks 1 2 4 8] [--repeats 3] [--methods lanczos] [--baseline COMMIT]
+        --out bench-out/stability-weak.jsonl
     .venv/bin/python scripts/bench_stability.py census STATES.npz ... --out bench-out/census.jsonl
     .venv/bin/python scripts/bench_stability.py report bench-out/stability-*.jsonl
 
@@ -21,7 +22,8 @@ check alone, the resident set once the network is built (``before``) and its pea
 ru_maxrss) on every rank, the verdict, the count, the Lanczos steps and its failure bound.
 weak: ``parjam pack --from FILE --phi 0.70`` (the state re-minimised, checked and written: the
 memory of the whole command) on P ranks at N = per-rank x P, both methods interleaved, peak RSS
-per rank by the benchmarks' memory wrapper (scripts/benchmarks/harness.py).
+per rank by the benchmarks' memory wrapper (scripts/benchmarks/harness.py); with --baseline
+that commit's tree (a git worktree) runs beside this one, the two interleaved.
 census: both checks on states saved as .npz (x, ids, diam, L, alpha, eps and the verdict of the
 run that saved them, e.g. every state the packing protocol checked), one JSON line per state.
 The machine is shared: every record carries the load average at its start.
@@ -40,7 +42,8 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "scripts"))
 
-from benchmarks.harness import mpirun, run as harness_run  # noqa: E402
+from benchmarks.harness import describe, mpirun, run as harness_run  # noqa: E402
+from benchmarks.harness import trees as harness_trees  # noqa: E402
 
 PYTHON = os.path.join(ROOT, ".venv", "bin", "python")
 SMALL = os.path.join(ROOT, "tests", "data", "soft_d3_N512_m0.h5")
@@ -79,11 +82,11 @@ def load():
     return os.getloadavg()[0]
 
 
-def measured(ranks, argv, what):
+def measured(ranks, argv, what, tree=ROOT):
     """Peak RSS per rank (MB), seconds and the run of ``argv`` on ``ranks`` ranks, each rank
-    under the benchmarks' memory wrapper (scripts/benchmarks/harness.py); a run without a
-    memory report ends the benchmark, naming ``what``."""
-    res = harness_run(argv, ranks=ranks)
+    under the benchmarks' memory wrapper (scripts/benchmarks/harness.py), ``tree``'s parjam;
+    a run without a memory report ends the benchmark, naming ``what``."""
+    res = harness_run(argv, ranks=ranks, tree=tree)
     if not res.rss_mb:
         sys.stderr.write(res.stdout[-2000:] + res.stderr[-2000:])
         raise SystemExit(f"{what}: no memory report ({res.error})")
@@ -146,26 +149,29 @@ def cmd_check(args):
 
 
 def cmd_weak(args):
-    with open(args.out, "a") as fh:
+    with harness_trees(args.baseline) as code, open(args.out, "a") as fh:
         for rep in range(args.repeats):
             for p in args.ranks:
                 n = args.per_rank * p
                 src = os.path.join(args.dir, f"phi070_N{n}.h5")
                 order = args.methods if (rep + p) % 2 == 0 else args.methods[::-1]
-                for method in order:
+                runs = [(label, tree, m) for m in order
+                        for label, tree in (code if rep % 2 == 0 else code[::-1])]
+                for label, tree, method in runs:
                     with tempfile.TemporaryDirectory(prefix="parjam-weak-") as tmp:
                         ld = load()
-                        argv = [PYTHON, "-m", "parjam", "pack", "--from", src, "--phi", "0.70",
-                                "--out", tmp, "-q", "--force", "-stability_method", method]
-                        mb, secs, res = measured(p, argv, f"pack N={n} P={p} {method}")
+                        argv = ["parjam", "pack", "--from", src, "--phi", "0.70", "--out", tmp,
+                                "-q", "--force", "-stability_method", method]
+                        mb, secs, res = measured(p, argv, f"pack N={n} P={p} {method}", tree)
                         if res.returncode:
                             sys.stderr.write(res.stderr[-3000:])
-                            raise SystemExit(f"pack N={n} P={p} {method} failed")
+                            raise SystemExit(f"pack N={n} P={p} {method} ({label}) failed")
                     rec = {"kind": "weak", "n": n, "ranks": p, "method": method, "repeat": rep,
-                           "peak": mb, "seconds": secs, "load": ld}
+                           "peak": mb, "seconds": secs, "load": ld, "tree": label,
+                           "commit": describe(tree)}
                     fh.write(json.dumps(rec) + "\n")
                     fh.flush()
-                    print(f"weak N={n} P={p} {method}: peak/rank {max(mb):.0f} MB "
+                    print(f"weak N={n} P={p} {method} {label}: peak/rank {max(mb):.0f} MB "
                           f"(median {np.median(mb):.0f}), {secs:.0f} s, load {ld:.1f}",
                           flush=True)
 
@@ -237,20 +243,26 @@ def cmd_report(args):
                   f"{min(r['load'] for r in g):.0f}-{max(r['load'] for r in g):.0f} |")
     weak = [r for r in recs if r["kind"] == "weak"]
     if weak:
-        print("\n| P | N | method | peak RSS per rank, MB (median over runs of the largest "
-              "rank) | / P = 1 | wall s (median) | runs | load |")
-        print("|---|---|---|---|---|---|---|---|")
+        print("\n| P | N | method | tree | peak RSS per rank, MB (median over runs of the largest "
+              "rank) | / P = 1 | median rank, MB | wall s (median) | runs | load |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
         base = {}
+        labels = sorted({r.get("tree", "new") for r in weak}, key=("old", "new").index)
         for m in METHODS:
-            for p in sorted({r["ranks"] for r in weak}):
-                g = [r for r in weak if r["ranks"] == p and r["method"] == m]
-                if not g:
-                    continue
-                peak = median([max(r["peak"]) for r in g])
-                base.setdefault(m, peak)
-                print(f"| {p} | {g[0]['n']} | {m} | {peak:.0f} | {peak / base[m]:.2f} | "
-                      f"{median([r['seconds'] for r in g]):.0f} | {len(g)} | "
-                      f"{min(r['load'] for r in g):.0f}-{max(r['load'] for r in g):.0f} |")
+            for label in labels:
+                for p in sorted({r["ranks"] for r in weak}):
+                    g = [r for r in weak if r["ranks"] == p and r["method"] == m
+                         and r.get("tree", "new") == label]
+                    if not g:
+                        continue
+                    peak = median([max(r["peak"]) for r in g])
+                    base.setdefault((m, label), peak)
+                    commit = sorted({r.get("commit", "") for r in g})
+                    print(f"| {p} | {g[0]['n']} | {m} | {label} {', '.join(commit)} | "
+                          f"{peak:.0f} | {peak / base[m, label]:.2f} | "
+                          f"{median([median(r['peak']) for r in g]):.0f} | "
+                          f"{median([r['seconds'] for r in g]):.0f} | {len(g)} | "
+                          f"{min(r['load'] for r in g):.0f}-{max(r['load'] for r in g):.0f} |")
     census = [r for r in recs if r["kind"] == "census"]
     if census:
         diff = [r for r in census if (r["old_stable"], r["old_negative"] > 0)
@@ -294,6 +306,8 @@ def main():
     a.add_argument("--repeats", type=int, default=3)
     a.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS,
                    help="the checks to run (the factorisation's memory may not fit at large P)")
+    a.add_argument("--baseline", default=None,
+                   help="a commit whose tree runs beside this one, interleaved (git worktree)")
     a.add_argument("--out", required=True)
     a = sub.add_parser("census")
     a.add_argument("states", nargs="+")
