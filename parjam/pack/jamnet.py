@@ -66,12 +66,6 @@ def contact_edges(state, x=None):
     return edges, halo, gid, state.ids[edges.i] < gid[edges.j]
 
 
-def pair_forces(edges, alpha, eps):
-    """Force on j from i of each half-edge (i -> j): network.contact_forces' expression."""
-    dv = potential.dV(edges.r, edges.sigma, alpha, eps)
-    return -(dv / edges.r)[:, None] * edges.rij
-
-
 @dataclass
 class ActiveEdges:
     """The half-edges among non-rattlers in active numbers, owned rows [lo, hi): first the
@@ -135,29 +129,29 @@ def network(st, alpha, eps=1.0, phi=np.nan):
     rattler = remove_rattlers(comm, halo, n_own, d, edges)
     number, lo, hi = renumber(comm, halo, ~rattler)
     lower = ~once
+    # -V'(r)/r of every half-edge, computed once: the contact subsets below take their
+    # elements (the same values as computing them on each subset; no copies of the half-edges)
+    g = -(potential.dV(edges.r, edges.sigma, alpha, eps) / edges.r)
     # energy and stress (network.analyze, network.stress_tensor): each contact once
-    c1 = edges.subset(once)
-    energy = potential.energy(c1.r, c1.sigma, alpha, eps)
-    dv = potential.dV(c1.r, c1.sigma, alpha, eps)
-    w = -(dv / c1.r)[:, None, None]
-    stress = w * c1.rij[:, :, None] * c1.rij[:, None, :]  # per contact; summed exactly below
-    # forces on the owned particles (network.particle_forces' order)
-    f_once = pair_forces(c1, alpha, eps)
-    c2 = edges.subset(lower)
-    f_low = -(potential.dV(c2.r, c2.sigma, alpha, eps) / c2.r)[:, None] * (-c2.rij)
+    energy = potential.energy(edges.r[once], edges.sigma[once], alpha, eps)
+    r1, g1 = edges.rij[once], g[once]
+    # per contact (g rij_a) rij_b, component by component; summed exactly below
+    stress = [(g1 * r1[:, a]) * r1[:, b] for a in range(d) for b in range(d)]
+    # forces on the owned particles (network.particle_forces' order): the force on j from i is g rij
     force = np.zeros((n_own, d))
+    i1, i2, r2, g2 = edges.i[once], edges.i[lower], edges.rij[lower], g[lower]
     for a in range(d):
-        force[:, a] = (np.bincount(c2.i, weights=f_low[:, a], minlength=n_own)
-                       - np.bincount(c1.i, weights=f_once[:, a], minlength=n_own))
+        force[:, a] = (np.bincount(i2, weights=g2 * (-r2[:, a]), minlength=n_own)
+                       - np.bincount(i1, weights=g1 * r1[:, a], minlength=n_own))
+    del r1, g1, i1, i2, r2, g2
     fnorm = np.sqrt(np.einsum("ij,ij->i", force, force))[~rattler]
     # contacts among non-rattlers, each once, in (i, j) order
     act = once & (number[edges.i] >= 0) & (number[edges.j] >= 0)
-    ca = edges.subset(act)
-    fsum = np.abs(potential.dV(ca.r, ca.sigma, alpha, eps))
-    ksum = potential.d2V(ca.r, ca.sigma, alpha, eps)
+    fsum = np.abs(potential.dV(edges.r[act], edges.sigma[act], alpha, eps))
+    ksum = potential.d2V(edges.r[act], edges.sigma[act], alpha, eps)
     # the sums over contacts, exact (one allreduce): the same bits on any number of ranks
-    sums = exactsum.totals(comm, energy, fsum, ksum,
-                           *(stress[:, a, b] for a in range(d) for b in range(d)))
+    sums = exactsum.totals(comm, energy, fsum, ksum, *stress)
+    del energy, fsum, ksum, stress, force, g
     stress = np.array(sums[3:]).reshape(d, d)
     nc = comm.allreduce(int(act.sum()))
     volume = st.L ** d

@@ -128,12 +128,14 @@ def packing_rows(rows, net):
     comm = as_mpi(rows.comm)
     st = net.state
     edges, _, gid, once = jamnet.contact_edges(st)
-    c = edges.subset(once)
-    i, j = st.ids[c.i], gid[c.j]
-    dv = potential.dV(c.r, c.sigma, rows.alpha, rows.eps)
-    force = np.linalg.norm(-(dv / c.r)[:, None] * c.rij, axis=1) if len(c) else np.zeros(0)
-    values = np.column_stack([j.astype(float), potential.overlap(c.r, c.sigma), force,
-                              potential.d2V(c.r, c.sigma, rows.alpha, rows.eps)])
+    # each contact once, its fields taken one at a time (no copy of the whole subset)
+    i, j = st.ids[edges.i[once]], gid[edges.j[once]]
+    r, sigma = edges.r[once], edges.sigma[once]
+    dv = potential.dV(r, sigma, rows.alpha, rows.eps)
+    force = np.linalg.norm(-(dv / r)[:, None] * edges.rij[once], axis=1) if len(r) else np.zeros(0)
+    values = np.column_stack([j.astype(float), potential.overlap(r, sigma), force,
+                              potential.d2V(r, sigma, rows.alpha, rows.eps)])
+    del edges, dv, force, r, sigma
     home_i, got = home_rows(comm, rows.n, i, values.reshape(-1, 4))
     home_j = got[:, 0].astype(np.int64)
     order = np.lexsort((home_j, home_i))

@@ -103,6 +103,18 @@ def test_distributed_hessian_is_the_dense_one(name):
     assert H.norm <= 2.0 * blocks.sum(axis=1).max() * (1 + 1e-12)
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_block_row_norms_are_each_blocks_infinity_norm(d):
+    """The norm bound's per-block ||K||_inf, a row of blocks at a time, has the bits of the
+    whole-array expression, NaN, signed zeros and magnitudes over 600 decades included."""
+    rng = np.random.default_rng(d)
+    b = rng.standard_normal((5003, d, d)) * 10.0 ** rng.integers(-300, 300, (5003, d, d))
+    b[5, 1, 1], b[7] = np.nan, -0.0
+    want = np.abs(b).sum(axis=2).max(axis=1)
+    assert np.array_equal(stability.block_row_norms(b), want, equal_nan=True)
+    assert stability.block_row_norms(b[:0]).shape == (0,)
+
+
 def test_curvature_counts_equal_lapack():
     """count_below at thresholds between the dense eigenvalues counts them exactly, on any
     number of ranks (MUMPS inertia of the distributed D - sigma I)."""
