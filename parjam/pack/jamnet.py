@@ -137,7 +137,7 @@ def network(st, alpha, eps=1.0, phi=np.nan):
     r1, g1 = edges.rij[once], g[once]
     # per contact (g rij_a) rij_b, component by component; summed exactly below
     stress = [(g1 * r1[:, a]) * r1[:, b] for a in range(d) for b in range(d)]
-    # forces on the owned particles (network.particle_forces' order): the force on j from i is g rij
+    # forces on the owned particles (network.particle_forces' order); on j from i: g rij
     force = np.zeros((n_own, d))
     i1, i2, r2, g2 = edges.i[once], edges.i[lower], edges.rij[lower], g[lower]
     for a in range(d):

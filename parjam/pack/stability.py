@@ -173,8 +173,7 @@ def block_row_norms(blocks):
     """||K||_inf = max_a sum_b |K_ab| of each d x d block, a row of blocks at a time: the
     values of ``np.abs(blocks).sum(axis=2).max(axis=1)`` without its temporary of the blocks'
     size (at 25,000 particles on one rank, 15 MB: the peak of the check)."""
-    m, d = blocks.shape[0], blocks.shape[1]
-    out = np.zeros(m) if d == 0 else None
+    d, out = blocks.shape[1], None
     for a in range(d):
         s = np.abs(blocks[:, a, 0])
         for b in range(1, d):
